@@ -1,0 +1,1100 @@
+"""Experts for the imitation tasks: train them, ship them, evaluate them, and write demonstrations.
+
+The paper (Sasaki et al., ICLR 2019, Sec. 5.1) trains its experts with TRPO and never ships
+them. This project must run offline on a fresh machine, so it trains its own experts here with
+Augmented Random Search (Mania, Guy & Recht, 2018, https://arxiv.org/abs/1803.07055),
+Algorithm 2, variant V2-t, which needs no autodiff and runs its rollouts in parallel.
+
+Symbols of the ARS paper and where they live:
+
+    M          policy matrix, (dim A, dim S)             -> ``weights``
+    mu, Sigma  running mean and diagonal covariance of   -> ``ObservationStatistics``
+               the states visited during training (V2)
+    alpha      step size                                 -> ``ARSConfig.step_size``
+    N          directions sampled per iteration          -> ``ARSConfig.directions``
+    b          top directions used in the update (V2-t)  -> ``ARSConfig.top``
+    nu         exploration noise                         -> ``ARSConfig.noise``
+    delta_k    direction, an i.i.d. N(0, 1) matrix       -> ``deltas[k]``
+    sigma_R    std of the 2b rewards used in the update  -> ``reward_std``
+
+Policy: ``a = clip(M @ ((s - mu) / sqrt(diag Sigma)), low, high)``, deterministic.
+
+Subcommands (``python expert.py -h``): ``train``, ``demos``, ``import-minari``, ``table``.
+Errors that a user can cause end in one line ``error: ...`` on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import multiprocessing
+import os
+import shlex
+import sys
+import tempfile
+import time
+import warnings
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+
+REPO_DIR = Path(__file__).resolve().parent
+EXPERTS_DIR = REPO_DIR / "experts"
+CHECKPOINTS_DIR = EXPERTS_DIR / "checkpoints"
+DEMOS_DIR = REPO_DIR / "demos"
+TABLE_PATH = EXPERTS_DIR / "table.json"
+
+# The paper's five tasks, on the MuJoCo versions gymnasium still ships (-v1 is long gone).
+PAPER_TASKS = ("Hopper-v4", "HalfCheetah-v4", "Walker2d-v4", "Ant-v4", "Humanoid-v4")
+
+# Sec. 5.1: expert trajectories are 1000 steps long; sparse sampling keeps 100 of each.
+TRAJECTORY_STEPS = 1000
+SPARSE_TRIPLETS_PER_TRAJECTORY = 100
+SAMPLING_MODES = ("sparse", "dense")
+
+# Demonstration actions may come from float32 files or other tools; accept tiny overshoots.
+ACTION_BOUND_TOLERANCE = 1e-4
+
+
+class UserError(Exception):
+    """An error the user caused (bad flag, bad file, wrong environment): one line, exit 2."""
+
+
+def atomic_write_npz(path: Path, **arrays) -> None:
+    """Write an .npz so that ``path`` is either the old file or the complete new one.
+
+    The temporary file sits in the same directory, so ``os.replace`` is an atomic rename.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(descriptor, "wb") as file:
+            np.savez(file, **arrays)
+        os.chmod(temporary, 0o644)  # mkstemp makes files private; these are meant to be shared
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Text twin of :func:`atomic_write_npz`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    try:
+        with os.fdopen(descriptor, "w") as file:
+            file.write(text)
+        os.chmod(temporary, 0o644)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+# ---------------------------------------------------------------------------------------------
+# Environments
+# ---------------------------------------------------------------------------------------------
+
+
+def make_env(env_id: str, **kwargs) -> gym.Env:
+    """``gym.make`` for continuous-control tasks, refusing what the method cannot handle.
+
+    The learner needs a flat (1-D Box) state and a Box action space with finite bounds,
+    because it maps ``tanh`` outputs in [-1, 1] onto ``[low, high]``.
+    """
+    with warnings.catch_warnings():
+        # gymnasium says "-v4 is out of date" on every make; the paper's tasks are -v4 on purpose.
+        warnings.filterwarnings("ignore", message=".*is out of date.*")
+        try:
+            env = gym.make(env_id, **kwargs)
+        except gym.error.Error as error:
+            raise UserError(f"cannot make environment {env_id!r}: {error}") from None
+    observation_space, action_space = env.observation_space, env.action_space
+    if not (isinstance(observation_space, gym.spaces.Box) and len(observation_space.shape) == 1):
+        env.close()
+        raise UserError(
+            f"{env_id} needs a flat (1-D Box) observation space; it has {observation_space}"
+        )
+    if not (
+        isinstance(action_space, gym.spaces.Box)
+        and len(action_space.shape) == 1
+        and np.all(np.isfinite(action_space.low))
+        and np.all(np.isfinite(action_space.high))
+    ):
+        env.close()
+        raise UserError(
+            f"the method needs a continuous (Box) action space with finite bounds; "
+            f"{env_id} has {action_space}"
+        )
+    return env
+
+
+def env_dimensions(env: gym.Env) -> tuple[int, int]:
+    """(dim S, dim A) of an environment made by :func:`make_env`."""
+    return env.observation_space.shape[0], env.action_space.shape[0]
+
+
+# ---------------------------------------------------------------------------------------------
+# The expert policy: a linear map of normalised states (ARS V2)
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ExpertPolicy:
+    """ARS V2 linear policy ``a = clip(M @ ((s - mu) / std), low, high)`` in raw env units."""
+
+    env_id: str
+    weights: np.ndarray  # M, (dim A, dim S)
+    obs_mean: np.ndarray  # mu, (dim S,)
+    obs_std: np.ndarray  # sqrt(diag Sigma), (dim S,)
+    action_low: np.ndarray  # (dim A,)
+    action_high: np.ndarray  # (dim A,)
+    metadata: dict = dataclasses.field(default_factory=dict)
+
+    def act(self, observation: np.ndarray) -> np.ndarray:
+        """Deterministic action for one state, clipped to the action bounds."""
+        normalised = (np.asarray(observation, dtype=np.float64) - self.obs_mean) / self.obs_std
+        return np.clip(self.weights @ normalised, self.action_low, self.action_high)  # (dim A,)
+
+    __call__ = act
+
+    def save(self, path: Path, **metadata) -> None:
+        """Write the policy and its provenance (command, seed, steps, wall time, ...)."""
+        record = {**self.metadata, **metadata}
+        atomic_write_npz(
+            path,
+            env_id=np.array(self.env_id),
+            weights=self.weights,
+            obs_mean=self.obs_mean,
+            obs_std=self.obs_std,
+            action_low=self.action_low,
+            action_high=self.action_high,
+            metadata=np.array(json.dumps(record, sort_keys=True)),
+        )
+
+
+def default_expert_path(env_id: str) -> Path:
+    """``<repo>/experts/<env_id>.npz``, found from this file, not from the working directory."""
+    return EXPERTS_DIR / f"{env_id}.npz"
+
+
+def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
+    """Load the shipped expert for ``env_id`` (or the one at ``path``), checking it fits the env."""
+    path = Path(path) if path is not None else default_expert_path(env_id)
+    if not path.exists():
+        raise UserError(
+            f"no expert for {env_id} at {path}; train one with "
+            f"`python expert.py train --env {env_id}`"
+        )
+    try:
+        with np.load(path, allow_pickle=False) as file:
+            policy = ExpertPolicy(
+                env_id=str(file["env_id"]),
+                weights=np.asarray(file["weights"], dtype=np.float64),
+                obs_mean=np.asarray(file["obs_mean"], dtype=np.float64),
+                obs_std=np.asarray(file["obs_std"], dtype=np.float64),
+                action_low=np.asarray(file["action_low"], dtype=np.float64),
+                action_high=np.asarray(file["action_high"], dtype=np.float64),
+                metadata=json.loads(str(file["metadata"])),
+            )
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
+        raise UserError(f"{path}: not a valid expert file ({error})") from None
+    if policy.env_id != env_id:
+        raise UserError(f"{path}: expert was trained on {policy.env_id}, not {env_id}")
+    dim_a, dim_s = policy.weights.shape
+    if policy.obs_mean.shape != (dim_s,) or policy.action_low.shape != (dim_a,):
+        raise UserError(f"{path}: inconsistent array shapes in expert file")
+    return policy
+
+
+# ---------------------------------------------------------------------------------------------
+# Evaluation with the true environment reward
+# ---------------------------------------------------------------------------------------------
+
+
+def run_episode(env: gym.Env, policy_fn: Callable, seed: int) -> tuple[float, int]:
+    """One episode from ``env.reset(seed=seed)``; returns (true return, steps)."""
+    observation, _ = env.reset(seed=seed)
+    episode_return, steps, done = 0.0, 0, False
+    while not done:
+        observation, reward, terminated, truncated, _ = env.step(policy_fn(observation))
+        episode_return += float(reward)
+        steps += 1
+        done = terminated or truncated
+    return episode_return, steps
+
+
+def evaluate(env_id: str, policy_fn: Callable, episodes: int, seed: int) -> np.ndarray:
+    """Returns of ``episodes`` seeded episodes (``env.reset(seed=seed + i)``), true reward."""
+    env = make_env(env_id)
+    try:
+        return np.array([run_episode(env, policy_fn, seed + i)[0] for i in range(episodes)])
+    finally:
+        env.close()
+
+
+def random_policy_returns(env_id: str, episodes: int, seed: int) -> np.ndarray:
+    """Returns of uniform random actions; the action space is seeded like the resets."""
+    env = make_env(env_id)
+    try:
+        returns = []
+        for i in range(episodes):
+            env.action_space.seed(seed + i)
+            returns.append(run_episode(env, lambda _: env.action_space.sample(), seed + i)[0])
+        return np.array(returns)
+    finally:
+        env.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# Demonstrations: (s, a, s') triplets of 1000-step expert trajectories (Sec. 5.1)
+# ---------------------------------------------------------------------------------------------
+
+DEMO_ARRAY_KEYS = ("observations", "actions", "next_observations", "terminals")
+
+
+@dataclass
+class Demos:
+    """Validated expert triplets; arrays are float32 (terminals bool), actions in env units."""
+
+    observations: np.ndarray  # s, (n, dim S)
+    actions: np.ndarray  # a, (n, dim A)
+    next_observations: np.ndarray  # s', (n, dim S)
+    terminals: np.ndarray  # whether s' is terminal, (n,)
+    env_id: str | None = None
+    returns: np.ndarray | None = None  # expert return of each source trajectory
+    seed: int | None = None
+    sampling: str | None = None
+    trajectories: int | None = None
+    path: Path | None = None
+
+    def __len__(self) -> int:
+        return len(self.observations)
+
+
+def default_demos_path(env_id: str, trajectories: int, sampling: str, seed: int) -> Path:
+    """Cache location ``<repo>/demos/<env>-<sampling>-<n>traj-seed<seed>.npz`` (git-ignored)."""
+    return DEMOS_DIR / f"{env_id}-{sampling}-{trajectories}traj-seed{seed}.npz"
+
+
+def make_demos(
+    env_id: str,
+    trajectories: int,
+    sampling: str,
+    seed: int,
+    expert: ExpertPolicy | None = None,
+    max_attempts: int | None = None,
+) -> dict:
+    """Roll out the expert and keep (s, a, s') triplets as in Sec. 5.1 of the paper.
+
+    Only trajectories that last the full 1000 steps are used: if the expert falls, the episode
+    is dropped and the next reset seed is tried (the dropped seeds are recorded). *sparse* keeps
+    100 triplets per trajectory, drawn uniformly without replacement; *dense* keeps all 1000.
+    Everything comes from one Generator seeded with ``seed``, split into one stream for the
+    reset seeds and one for subsampling, so that sparse and dense demonstrations with the same
+    seed come from the same trajectories (sparse is a subset of dense).
+    """
+    if sampling not in SAMPLING_MODES:
+        raise UserError(f"--sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}")
+    if trajectories < 1:
+        raise UserError(f"--trajectories must be at least 1, got {trajectories}")
+    make_env(env_id).close()  # a wrong environment is reported as such, not as "no expert"
+    expert = expert if expert is not None else load_expert(env_id)
+    max_attempts = max_attempts if max_attempts is not None else 10 * trajectories
+    episode_rng, subsample_rng = np.random.default_rng(seed).spawn(2)
+    env = make_env(env_id)
+    observations, actions, next_observations, returns = [], [], [], []
+    used_seeds, dropped_seeds = [], []
+    try:
+        while len(returns) < trajectories:
+            if len(used_seeds) + len(dropped_seeds) >= max_attempts:
+                raise UserError(
+                    f"the {env_id} expert lasted {TRAJECTORY_STEPS} steps in only "
+                    f"{len(returns)} of {max_attempts} episodes; it is not good enough for demos"
+                )
+            episode_seed = int(episode_rng.integers(0, 2**31 - 1))
+            states, episode_actions, episode_return = [], [], 0.0
+            observation, _ = env.reset(seed=episode_seed)
+            for _ in range(TRAJECTORY_STEPS):
+                action = np.asarray(expert.act(observation), dtype=np.float64)
+                states.append(observation)
+                episode_actions.append(action)
+                observation, reward, terminated, truncated, _ = env.step(action)
+                episode_return += float(reward)
+                if terminated or truncated:
+                    break
+            states.append(observation)
+            if len(episode_actions) < TRAJECTORY_STEPS or terminated:
+                dropped_seeds.append(episode_seed)
+                continue
+            states = np.asarray(states)  # (1001, dim S): s_0 .. s_1000
+            if sampling == "sparse":
+                keep = np.sort(subsample_rng.choice(TRAJECTORY_STEPS,
+                                                    SPARSE_TRIPLETS_PER_TRAJECTORY, replace=False))
+            else:
+                keep = np.arange(TRAJECTORY_STEPS)
+            observations.append(states[:-1][keep])
+            actions.append(np.asarray(episode_actions)[keep])
+            next_observations.append(states[1:][keep])
+            returns.append(episode_return)
+            used_seeds.append(episode_seed)
+    finally:
+        env.close()
+    count = sum(len(chunk) for chunk in observations)
+    return dict(
+        observations=np.concatenate(observations).astype(np.float32),
+        actions=np.concatenate(actions).astype(np.float32),
+        next_observations=np.concatenate(next_observations).astype(np.float32),
+        # Every kept trajectory ran into the time limit, which is truncation, not termination.
+        terminals=np.zeros(count, dtype=bool),
+        env_id=np.array(env_id),
+        returns=np.array(returns),
+        seed=np.array(seed),
+        sampling=np.array(sampling),
+        trajectories=np.array(trajectories),
+        episode_seeds=np.array(used_seeds, dtype=np.int64),
+        dropped_episode_seeds=np.array(dropped_seeds, dtype=np.int64),
+        expert=np.array(json.dumps(expert.metadata.get("commands", []))),
+    )
+
+
+def write_demos(path: Path, demos: dict) -> None:
+    """Validate the triplets against their environment, then write them atomically."""
+    validate_demos(demos, str(demos["env_id"]), Path(path))
+    atomic_write_npz(path, **demos)
+
+
+def ensure_demos(env_id: str, trajectories: int = 4, sampling: str = "sparse",
+                 seed: int = 0) -> Path:
+    """The default demonstration file, made from the shipped expert the first time."""
+    path = default_demos_path(env_id, trajectories, sampling, seed)
+    if not path.exists():
+        write_demos(path, make_demos(env_id, trajectories, sampling, seed))
+    return path
+
+
+def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
+    """Check triplets against ``env_id``; any problem is one UserError naming the file."""
+
+    def fail(problem: str) -> UserError:
+        return UserError(f"{path}: {problem}")
+
+    missing = [key for key in DEMO_ARRAY_KEYS if key not in arrays]
+    if missing:
+        raise fail(f"missing key(s) {', '.join(missing)}")
+    recorded_env = str(arrays["env_id"]) if "env_id" in arrays else None
+    if recorded_env is not None and recorded_env != env_id:
+        raise fail(f"demonstrations are for {recorded_env}, not {env_id}")
+    try:
+        observations = np.asarray(arrays["observations"], dtype=np.float32)
+        actions = np.asarray(arrays["actions"], dtype=np.float32)
+        next_observations = np.asarray(arrays["next_observations"], dtype=np.float32)
+        terminals = np.asarray(arrays["terminals"]).astype(bool)
+    except (TypeError, ValueError) as error:
+        raise fail(f"arrays are not numeric ({error})") from None
+    env = make_env(env_id)
+    dim_s, dim_a = env_dimensions(env)
+    low, high = env.action_space.low, env.action_space.high
+    env.close()
+    if len(observations) == 0:
+        raise fail("contains zero triplets")
+    for name, array, dim in (("observations", observations, dim_s),
+                             ("next_observations", next_observations, dim_s),
+                             ("actions", actions, dim_a)):
+        if array.ndim != 2 or array.shape[1] != dim:
+            raise fail(f"{name} have shape {array.shape}; {env_id} needs (n, {dim})")
+        if not np.all(np.isfinite(array)):
+            raise fail(f"{name} contain non-finite values (NaN or inf)")
+    lengths = {len(observations), len(actions), len(next_observations), len(terminals)}
+    if len(lengths) != 1 or terminals.ndim != 1:
+        raise fail(f"mismatched lengths: {len(observations)} observations, {len(actions)} "
+                   f"actions, {len(next_observations)} next_observations, "
+                   f"{len(terminals)} terminals")
+    tolerance = ACTION_BOUND_TOLERANCE * np.maximum(1.0, np.abs(np.stack([low, high])))
+    if np.any(actions < low - tolerance[0]) or np.any(actions > high + tolerance[1]):
+        raise fail(f"actions outside the action bounds [{low.min():g}, {high.max():g}] of "
+                   f"{env_id} (largest |a| = {np.abs(actions).max():g})")
+
+    def optional(key, convert):
+        return convert(arrays[key]) if key in arrays else None
+
+    return Demos(
+        observations=observations,
+        actions=actions,
+        next_observations=next_observations,
+        terminals=terminals,
+        env_id=recorded_env,
+        returns=optional("returns", np.asarray),
+        seed=optional("seed", int),
+        sampling=optional("sampling", str),
+        trajectories=optional("trajectories", int),
+        path=path,
+    )
+
+
+def load_demos(path: Path, env_id: str) -> Demos:
+    """Load and validate a demonstration file for ``env_id`` (see :func:`validate_demos`)."""
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{path}: no such demonstration file")
+    try:
+        # Read every member now: a truncated file may open fine and fail on first access.
+        with np.load(path, allow_pickle=False) as file:
+            arrays = {key: file[key] for key in file.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as error:
+        raise UserError(f"{path}: not a valid .npz file ({error})") from None
+    return validate_demos(arrays, env_id, path)
+
+
+def import_minari(dataset_id: str, env_id: str, trajectories: int | None = None,
+                  sampling: str = "dense", seed: int = 0) -> dict:
+    """Triplets from a Minari dataset already on this machine (never downloads).
+
+    Minari stores each episode as observations (T+1, dim S), actions (T, dim A) and
+    terminations (T,); the triplets are (obs[t], act[t], obs[t+1]) with terminal = terminations[t].
+    Episodes of any length are kept (the file's returns record how good they were).
+    """
+    try:
+        import minari
+    except ImportError:
+        raise UserError("import-minari needs the minari package: pip install 'minari[hdf5]'") \
+            from None
+    if sampling not in SAMPLING_MODES:
+        raise UserError(f"--sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}")
+    try:
+        dataset = minari.load_dataset(dataset_id, download=False)
+    except Exception as error:  # minari raises bare Exceptions/FileNotFoundError/ValueError
+        raise UserError(f"cannot load Minari dataset {dataset_id!r} locally "
+                        f"(MINARI_DATASETS_PATH={os.environ.get('MINARI_DATASETS_PATH', '~')}): "
+                        f"{error}") from None
+    rng = np.random.default_rng(seed)
+    observations, actions, next_observations, terminals, returns = [], [], [], [], []
+    for episode in dataset.iterate_episodes():
+        if trajectories is not None and len(returns) >= trajectories:
+            break
+        episode_observations = np.asarray(episode.observations)
+        if episode_observations.dtype == object or episode_observations.ndim != 2:
+            raise UserError(f"{dataset_id}: observations are not flat arrays")
+        steps = len(episode.actions)
+        keep = np.arange(steps)
+        if sampling == "sparse" and steps > SPARSE_TRIPLETS_PER_TRAJECTORY:
+            keep = np.sort(rng.choice(steps, SPARSE_TRIPLETS_PER_TRAJECTORY, replace=False))
+        observations.append(episode_observations[:-1][keep])
+        actions.append(np.asarray(episode.actions)[keep])
+        next_observations.append(episode_observations[1:][keep])
+        terminals.append(np.asarray(episode.terminations, dtype=bool)[keep])
+        returns.append(float(np.sum(episode.rewards)))
+    if not returns:
+        raise UserError(f"Minari dataset {dataset_id!r} has no episodes")
+
+    def stack(chunks, dtype):
+        return np.concatenate(chunks).astype(dtype)
+
+    return dict(
+        observations=stack(observations, np.float32),
+        actions=stack(actions, np.float32),
+        next_observations=stack(next_observations, np.float32),
+        terminals=stack(terminals, bool),
+        env_id=np.array(env_id),
+        returns=np.array(returns),
+        seed=np.array(seed),
+        sampling=np.array(sampling),
+        trajectories=np.array(len(returns)),
+        source=np.array(f"minari:{dataset_id}"),
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Reference returns (Table 1): random policy and expert, the normalised score's two ends
+# ---------------------------------------------------------------------------------------------
+
+
+def measure_table(episodes: int = 10, seed: int = 0, tasks=PAPER_TASKS,
+                  log: Callable[[str], None] = print) -> dict:
+    """dim S, dim A, random and expert returns (mean, std over seeded episodes) per task."""
+    table = {}
+    for env_id in tasks:
+        env = make_env(env_id)
+        dim_s, dim_a = env_dimensions(env)
+        env.close()
+        random_returns = random_policy_returns(env_id, episodes, seed)
+        row = dict(dim_s=dim_s, dim_a=dim_a, episodes=episodes, seed=seed,
+                   random_mean=float(random_returns.mean()),
+                   random_std=float(random_returns.std()),
+                   expert_mean=None, expert_std=None)
+        if default_expert_path(env_id).exists():
+            expert_returns = evaluate(env_id, load_expert(env_id).act, episodes, seed)
+            row.update(expert_mean=float(expert_returns.mean()),
+                       expert_std=float(expert_returns.std()))
+        log(f"{env_id}: random {row['random_mean']:.2f}, expert {row['expert_mean']}")
+        table[env_id] = row
+    return table
+
+
+def table_markdown(table: dict) -> str:
+    lines = ["| Task | dim S | dim A | Random policy | Expert |",
+             "|---|---:|---:|---:|---:|"]
+    for env_id, row in table.items():
+        expert = (f"{row['expert_mean']:.2f} ± {row['expert_std']:.2f}"
+                  if row["expert_mean"] is not None else "missing (not trained yet)")
+        lines.append(f"| {env_id} | {row['dim_s']} | {row['dim_a']} | "
+                     f"{row['random_mean']:.2f} ± {row['random_std']:.2f} | {expert} |")
+    return "\n".join(lines)
+
+
+def reference_returns(env_id: str, table_path: Path = TABLE_PATH) -> tuple[float, float]:
+    """(R_random, R_expert) for the normalised score (R - R_random) / (R_expert - R_random)."""
+    try:
+        table = json.loads(Path(table_path).read_text())
+    except FileNotFoundError:
+        raise UserError(f"{table_path} is missing; run `python expert.py table`") from None
+    except (OSError, ValueError) as error:
+        raise UserError(f"{table_path}: not a valid table ({error})") from None
+    row = table.get(env_id)
+    if row is None or row.get("expert_mean") is None:
+        raise UserError(f"{table_path} has no expert return for {env_id}; "
+                        f"run `python expert.py table` once its expert exists")
+    return float(row["random_mean"]), float(row["expert_mean"])
+
+
+# ---------------------------------------------------------------------------------------------
+# ARS V2-t trainer (Mania, Guy & Recht 2018, Algorithm 2)
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ARSConfig:
+    """Hyperparameters of ARS V2-t; per-task defaults in ``ARS_DEFAULTS`` (rl-zoo ``ars.yml``)."""
+
+    step_size: float = 0.02
+    """alpha: step size of the update of M."""
+    directions: int = 8
+    """N: directions delta_k sampled per iteration (2N rollouts: M + nu delta, M - nu delta)."""
+    top: int = 4
+    """b: best directions, ranked by max(r+, r-), that enter the update (V2-t)."""
+    noise: float = 0.03
+    """nu: scale of the exploration perturbations."""
+    survival_bonus: float = 0.0
+    """Subtracted from every training reward, so that merely staying alive earns nothing."""
+    steps: int = 10_000_000
+    """Training budget in environment steps (perturbed rollouts only, not evaluations)."""
+    eval_every: int = 10
+    """Evaluate the unperturbed policy every this many iterations."""
+    eval_episodes: int = 5
+    """Episodes per evaluation; the best evaluated policy is the one shipped."""
+
+
+# rl-baselines3-zoo ars.yml, "closest to the original paper" (GUIDE.md Sec. 4), plus budgets.
+ARS_DEFAULTS = {
+    "Hopper-v4": dict(step_size=0.01, directions=8, top=4, noise=0.025, survival_bonus=1.0,
+                      steps=7_000_000),
+    "HalfCheetah-v4": dict(step_size=0.02, directions=32, top=4, noise=0.03, survival_bonus=0.0,
+                           steps=12_000_000),
+    "Walker2d-v4": dict(step_size=0.03, directions=40, top=30, noise=0.025, survival_bonus=1.0,
+                        steps=75_000_000),
+    "Ant-v4": dict(step_size=0.015, directions=60, top=20, noise=0.025, survival_bonus=1.0,
+                   steps=75_000_000),
+    "Humanoid-v4": dict(step_size=0.02, directions=256, top=256, noise=0.0075, survival_bonus=5.0,
+                        steps=25_000_000),
+}
+
+
+def ars_config_for(env_id: str, **overrides) -> ARSConfig:
+    """Task defaults, then any explicit overrides (``None`` means "not given")."""
+    values = {**ARS_DEFAULTS.get(env_id, {})}
+    values.update({key: value for key, value in overrides.items() if value is not None})
+    return ARSConfig(**values)
+
+
+class ObservationStatistics:
+    """Running mu and diag(Sigma) of all states visited in training (ARS V2).
+
+    Kept as (count, mean, sum of squared deviations) and merged with Chan et al.'s parallel
+    formula, so that merging per-rollout statistics in a fixed order is exact and deterministic.
+    """
+
+    def __init__(self, dim: int):
+        self.count = 0
+        self.mean = np.zeros(dim)
+        self.squared_deviations = np.zeros(dim)
+
+    def merge(self, count: int, mean: np.ndarray, squared_deviations: np.ndarray) -> None:
+        if count == 0:
+            return
+        total = self.count + count
+        delta = mean - self.mean
+        self.mean = self.mean + delta * count / total
+        self.squared_deviations = (
+            self.squared_deviations + squared_deviations + delta**2 * self.count * count / total
+        )
+        self.count = total
+
+    def std(self) -> np.ndarray:
+        """sqrt(diag Sigma); 1 where a coordinate has not varied yet (so it stays unscaled)."""
+        if self.count < 2:
+            return np.ones_like(self.mean)
+        variance = self.squared_deviations / (self.count - 1)
+        return np.where(variance > 1e-8, np.sqrt(np.maximum(variance, 1e-8)), 1.0)
+
+
+# Each worker process keeps its own environment between tasks (made once by the initializer).
+_worker_env: gym.Env | None = None
+
+
+def _init_worker(env_id: str) -> None:
+    global _worker_env
+    _worker_env = make_env(env_id)
+
+
+def _rollout_task(task: tuple) -> tuple:
+    return rollout(_worker_env, *task)
+
+
+def rollout(
+    env: gym.Env,
+    weights: np.ndarray,
+    obs_mean: np.ndarray,
+    obs_std: np.ndarray,
+    seed: int,
+    survival_bonus: float,
+    collect_states: bool,
+) -> tuple:
+    """One episode of the linear policy from ``reset(seed=seed)``.
+
+    Returns (return minus survival bonus per step, steps, true return, state statistics) where
+    the statistics are (count, mean, squared deviations) of the states acted upon, or None.
+    """
+    low, high = env.action_space.low, env.action_space.high
+    observation, _ = env.reset(seed=seed)
+    states, true_return, steps, done = [], 0.0, 0, False
+    while not done:
+        if collect_states:
+            states.append(observation)
+        action = np.clip(weights @ ((observation - obs_mean) / obs_std), low, high)  # (dim A,)
+        observation, reward, terminated, truncated, _ = env.step(action)
+        true_return += float(reward)
+        steps += 1
+        done = terminated or truncated
+    statistics = None
+    if collect_states:
+        visited = np.asarray(states, dtype=np.float64)  # (T, dim S)
+        mean = visited.mean(axis=0)  # (dim S,)
+        statistics = (len(visited), mean, ((visited - mean) ** 2).sum(axis=0))
+    return true_return - survival_bonus * steps, steps, true_return, statistics
+
+
+class RolloutRunner:
+    """Runs rollout tasks in ``workers`` processes (or in this process when workers == 1)."""
+
+    def __init__(self, env_id: str, workers: int):
+        self.pool = None
+        if workers > 1:
+            # spawn: a clean interpreter per worker, safe whatever threads the parent holds.
+            context = multiprocessing.get_context("spawn")
+            self.pool = context.Pool(workers, initializer=_init_worker, initargs=(env_id,))
+        else:
+            self.env = make_env(env_id)
+
+    def run(self, tasks: list[tuple]) -> list[tuple]:
+        if self.pool is not None:
+            return self.pool.map(_rollout_task, tasks, chunksize=1)
+        return [rollout(self.env, *task) for task in tasks]
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.close()
+            self.pool.join()
+        else:
+            self.env.close()
+
+
+@dataclass
+class ARSState:
+    """Everything needed to continue a run exactly: the checkpoint's contents."""
+
+    env_id: str
+    seed: int
+    config: ARSConfig
+    weights: np.ndarray  # M, (dim A, dim S)
+    statistics: ObservationStatistics
+    rng: np.random.Generator
+    iteration: int = 0
+    env_steps: int = 0
+    wall_seconds: float = 0.0
+    best_return: float = -np.inf
+    best_return_std: float = 0.0
+    best_weights: np.ndarray | None = None
+    best_obs_mean: np.ndarray | None = None
+    best_obs_std: np.ndarray | None = None
+    best_env_steps: int = 0
+    commands: tuple[str, ...] = ()
+
+    def save(self, path: Path) -> None:
+        best = self.best_weights is not None
+        atomic_write_npz(
+            path,
+            env_id=np.array(self.env_id),
+            seed=np.array(self.seed),
+            config=np.array(json.dumps(dataclasses.asdict(self.config))),
+            weights=self.weights,
+            stat_count=np.array(self.statistics.count),
+            stat_mean=self.statistics.mean,
+            stat_squared_deviations=self.statistics.squared_deviations,
+            rng_state=np.array(json.dumps(self.rng.bit_generator.state)),
+            iteration=np.array(self.iteration),
+            env_steps=np.array(self.env_steps),
+            wall_seconds=np.array(self.wall_seconds),
+            best_return=np.array(self.best_return),
+            best_return_std=np.array(self.best_return_std),
+            best_weights=self.best_weights if best else np.zeros(0),
+            best_obs_mean=self.best_obs_mean if best else np.zeros(0),
+            best_obs_std=self.best_obs_std if best else np.zeros(0),
+            best_env_steps=np.array(self.best_env_steps),
+            commands=np.array(json.dumps(list(self.commands))),
+        )
+
+    @classmethod
+    def load(cls, path: Path) -> ARSState:
+        try:
+            with np.load(path, allow_pickle=False) as file:
+                statistics = ObservationStatistics(file["stat_mean"].shape[0])
+                statistics.count = int(file["stat_count"])
+                statistics.mean = file["stat_mean"]
+                statistics.squared_deviations = file["stat_squared_deviations"]
+                rng = np.random.default_rng()
+                rng.bit_generator.state = json.loads(str(file["rng_state"]))
+                best = file["best_weights"].size > 0
+                return cls(
+                    env_id=str(file["env_id"]),
+                    seed=int(file["seed"]),
+                    config=ARSConfig(**json.loads(str(file["config"]))),
+                    weights=file["weights"],
+                    statistics=statistics,
+                    rng=rng,
+                    iteration=int(file["iteration"]),
+                    env_steps=int(file["env_steps"]),
+                    wall_seconds=float(file["wall_seconds"]),
+                    best_return=float(file["best_return"]),
+                    best_return_std=float(file["best_return_std"]),
+                    best_weights=file["best_weights"] if best else None,
+                    best_obs_mean=file["best_obs_mean"] if best else None,
+                    best_obs_std=file["best_obs_std"] if best else None,
+                    best_env_steps=int(file["best_env_steps"]),
+                    commands=tuple(json.loads(str(file["commands"]))),
+                )
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
+            raise UserError(f"{path}: not a valid ARS checkpoint ({error})") from None
+
+
+def ars_iteration(state: ARSState, runner: RolloutRunner) -> None:
+    """One iteration of Algorithm 2 (V2-t), updating M and (mu, Sigma) in place."""
+    config, rng = state.config, state.rng
+    # mu and Sigma are frozen for the whole iteration (line 5 uses those of iteration j).
+    obs_mean, obs_std = state.statistics.mean.copy(), state.statistics.std()
+    # Line 4: delta_1..delta_N with i.i.d. standard normal entries, each (dim A, dim S).
+    deltas = rng.standard_normal((config.directions, *state.weights.shape))  # (N, dim A, dim S)
+    # Every rollout gets its own reset seed from the one Generator, so that results do not
+    # depend on which worker runs which rollout, and a resumed run continues exactly.
+    reset_seeds = rng.integers(0, 2**31 - 1, size=(config.directions, 2))
+    tasks = []
+    for k in range(config.directions):
+        for sign_index, sign in enumerate((+1.0, -1.0)):
+            # Line 5: pi_{j,k,+/-}(s) = (M_j +/- nu delta_k) diag(Sigma_j)^(-1/2) (s - mu_j).
+            perturbed = state.weights + sign * config.noise * deltas[k]
+            tasks.append((perturbed, obs_mean, obs_std, int(reset_seeds[k, sign_index]),
+                          config.survival_bonus, True))
+    results = runner.run(tasks)
+    rewards = np.array([result[0] for result in results]).reshape(config.directions, 2)  # (N, 2)
+    state.env_steps += sum(result[1] for result in results)
+    # Line 8 (V2): update mu and Sigma with every state visited in this iteration, in task order.
+    for result in results:
+        state.statistics.merge(*result[3])
+    # Line 6 (V2-t): keep the b directions with the largest max(r+, r-).
+    top = np.argsort(-rewards.max(axis=1), kind="stable")[: config.top]
+    # Line 7: M += alpha / (b sigma_R) sum_k (r+ - r-) delta_k, sigma_R over the 2b rewards.
+    reward_std = rewards[top].std()
+    if reward_std < 1e-8:
+        reward_std = 1.0  # all b directions scored alike: no signal, and no division by zero
+    differences = rewards[top, 0] - rewards[top, 1]  # (b,)
+    step = np.tensordot(differences, deltas[top], axes=1)  # (dim A, dim S)
+    state.weights = state.weights + config.step_size / (config.top * reward_std) * step
+    state.iteration += 1
+
+
+def evaluate_linear(state: ARSState, runner: RolloutRunner) -> np.ndarray:
+    """True returns of the unperturbed policy M over ``eval_episodes`` fresh seeds.
+
+    The seeds come from their own Generator, derived from (seed, iteration), so that how
+    often one evaluates does not change the training run, and the shipped policy is not
+    chosen on the fixed seeds that ``table`` reports.
+    """
+    obs_mean, obs_std = state.statistics.mean.copy(), state.statistics.std()
+    eval_rng = np.random.default_rng([state.seed, state.iteration])
+    seeds = eval_rng.integers(2**20, 2**31 - 1, size=state.config.eval_episodes)
+    tasks = [(state.weights, obs_mean, obs_std, int(seed), 0.0, False) for seed in seeds]
+    return np.array([result[2] for result in runner.run(tasks)])
+
+
+def train(
+    env_id: str,
+    seed: int,
+    config: ARSConfig,
+    workers: int,
+    checkpoint_path: Path,
+    expert_path: Path,
+    resume: bool = False,
+    command: str = "",
+    checkpoint_seconds: float = 10.0,
+    log: Callable[[str], None] = print,
+) -> ARSState:
+    """Run ARS V2-t until ``config.steps`` environment steps; keep the best evaluated policy."""
+    env = make_env(env_id)
+    dim_s, dim_a = env_dimensions(env)
+    action_low, action_high = env.action_space.low.astype(np.float64), \
+        env.action_space.high.astype(np.float64)
+    env.close()
+    if resume:
+        if not checkpoint_path.exists():
+            raise UserError(f"--resume: no checkpoint at {checkpoint_path}")
+        state = ARSState.load(checkpoint_path)
+        if state.env_id != env_id:
+            raise UserError(f"{checkpoint_path}: checkpoint is for {state.env_id}, not {env_id}")
+        # Only the budget may change on resume; anything else would not be the same run.
+        state.config = dataclasses.replace(state.config, steps=config.steps)
+        log(f"resumed {env_id} at iteration {state.iteration}, {state.env_steps} env steps")
+    else:
+        state = ARSState(
+            env_id=env_id,
+            seed=seed,
+            config=config,
+            weights=np.zeros((dim_a, dim_s)),  # M_0 = 0 (Algorithm 2, line 2)
+            statistics=ObservationStatistics(dim_s),
+            rng=np.random.default_rng(seed),
+        )
+    state.commands = (*state.commands, command)
+    log(f"ARS V2-t on {env_id}: seed {state.seed}, {workers} workers, "
+        f"{json.dumps(dataclasses.asdict(state.config))}")
+
+    def write_expert() -> None:
+        policy = ExpertPolicy(env_id, state.best_weights, state.best_obs_mean, state.best_obs_std,
+                              action_low, action_high)
+        policy.save(
+            expert_path,
+            trainer="ARS V2-t (Mania, Guy & Recht 2018, Algorithm 2)",
+            commands=list(state.commands),
+            seed=state.seed,
+            hyperparameters=dataclasses.asdict(state.config),
+            env_steps=state.best_env_steps,
+            wall_seconds=round(state.wall_seconds, 1),
+            eval_return_mean=state.best_return,
+            eval_return_std=state.best_return_std,
+            eval_episodes=state.config.eval_episodes,
+        )
+
+    # A fresh run must not replace a shipped expert with a worse one: it writes only when it
+    # beats the evaluation recorded in the existing file (a resumed run carries its own best).
+    if not resume and expert_path.exists():
+        try:
+            existing = load_expert(env_id, expert_path)
+            state.best_return = float(existing.metadata.get("eval_return_mean", -np.inf))
+            log(f"{expert_path} exists (eval return {state.best_return:.1f}); "
+                f"it is replaced only by a better evaluation")
+        except UserError:
+            pass
+    runner = RolloutRunner(env_id, workers)
+    started, last_checkpoint = time.monotonic(), time.monotonic()
+    wall_at_start = state.wall_seconds
+    try:
+        while state.env_steps < state.config.steps:
+            ars_iteration(state, runner)
+            if state.iteration % state.config.eval_every == 0 or \
+                    state.env_steps >= state.config.steps:
+                returns = evaluate_linear(state, runner)
+                state.wall_seconds = wall_at_start + time.monotonic() - started
+                improved = returns.mean() > state.best_return
+                if improved:
+                    state.best_return, state.best_return_std = returns.mean(), returns.std()
+                    state.best_weights = state.weights.copy()
+                    state.best_obs_mean = state.statistics.mean.copy()
+                    state.best_obs_std = state.statistics.std()
+                    state.best_env_steps = state.env_steps
+                    write_expert()
+                log(f"iteration {state.iteration:5d}  env steps {state.env_steps:10d}  "
+                    f"wall {state.wall_seconds:8.1f} s  eval return {returns.mean():9.1f} "
+                    f"± {returns.std():6.1f}" + ("  (best, saved)" if improved else ""))
+            state.wall_seconds = wall_at_start + time.monotonic() - started
+            if time.monotonic() - last_checkpoint >= checkpoint_seconds:
+                state.save(checkpoint_path)
+                last_checkpoint = time.monotonic()
+        state.save(checkpoint_path)
+    finally:
+        runner.close()
+    log(f"done: best eval return {state.best_return:.1f} ± {state.best_return_std:.1f} at "
+        f"{state.best_env_steps} env steps; expert in {expert_path}")
+    return state
+
+
+def positive_int(text: str) -> int:
+    """A count such as ``8`` or a budget such as ``7e6``."""
+    value = float(text)
+    if value != int(value):
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text}")
+    value = int(value)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def add_config_flags(parser: argparse.ArgumentParser) -> None:
+    """One flag per ARSConfig field, help from the field's docstring; default = task default."""
+    docs = field_docstrings(ARSConfig)
+    for field in dataclasses.fields(ARSConfig):
+        parser.add_argument(
+            "--" + field.name.replace("_", "-"),
+            type=float if field.type in ("float", float) else positive_int,
+            default=None,
+            help=f"{docs.get(field.name, '')} (default: per task, else {field.default})",
+        )
+
+
+def field_docstrings(cls) -> dict[str, str]:
+    """The string literal under each dataclass field (the CleanRL/Spinning Up convention)."""
+    import ast
+    import inspect
+
+    tree = ast.parse(inspect.getsource(cls))
+    body = tree.body[0].body
+    docs = {}
+    for previous, node in zip(body, body[1:], strict=False):
+        if (isinstance(previous, ast.AnnAssign) and isinstance(node, ast.Expr)
+                and isinstance(node.value, ast.Constant) and isinstance(node.value.value, str)):
+            docs[previous.target.id] = node.value.value
+    return docs
+
+
+def command_line(argv: list[str]) -> str:
+    return shlex.join(["python", "expert.py", *argv])
+
+
+def cli_train(args, argv) -> None:
+    overrides = {field.name: getattr(args, field.name) for field in dataclasses.fields(ARSConfig)}
+    config = ars_config_for(args.env, **overrides)
+    if args.resume:
+        given = {name: value for name, value in overrides.items()
+                 if value is not None and name != "steps"}
+        if given:
+            raise UserError(f"--resume continues the checkpoint's settings; only --steps may "
+                            f"change (got {', '.join('--' + n.replace('_', '-') for n in given)})")
+    checkpoint = Path(args.checkpoint) if args.checkpoint else \
+        CHECKPOINTS_DIR / f"{args.env}.ckpt.npz"
+    out = Path(args.out) if args.out else default_expert_path(args.env)
+    train(args.env, args.seed, config, args.workers, checkpoint, out, resume=args.resume,
+          command=command_line(argv), log=lambda line: print(line, flush=True))
+
+
+def cli_demos(args, argv) -> None:
+    expert = load_expert(args.env, Path(args.expert)) if args.expert else None
+    out = Path(args.out) if args.out else \
+        default_demos_path(args.env, args.trajectories, args.sampling, args.seed)
+    demos = make_demos(args.env, args.trajectories, args.sampling, args.seed, expert=expert)
+    write_demos(out, demos)
+    print(f"{out}: {len(demos['observations'])} triplets from {args.trajectories} "
+          f"{args.sampling} trajectories, expert returns {np.round(demos['returns'], 1).tolist()}"
+          f", dropped episodes (expert fell): {len(demos['dropped_episode_seeds'])}")
+
+
+def cli_import_minari(args, argv) -> None:
+    demos = import_minari(args.dataset_id, args.env, args.trajectories, args.sampling, args.seed)
+    write_demos(Path(args.out), demos)
+    print(f"{args.out}: {len(demos['observations'])} triplets from {len(demos['returns'])} "
+          f"episodes of {args.dataset_id}")
+
+
+def cli_check_demos(args, argv) -> None:
+    demos = load_demos(Path(args.file), args.env)
+    returns = "unknown" if demos.returns is None else \
+        f"{demos.returns.mean():.1f} ± {demos.returns.std():.1f}"
+    print(f"{args.file}: {len(demos)} valid triplets for {args.env} "
+          f"({demos.sampling or 'unknown'} sampling, {demos.trajectories or '?'} trajectories, "
+          f"expert return {returns}, {int(demos.terminals.sum())} terminal)")
+
+
+def cli_table(args, argv) -> None:
+    table = measure_table(args.episodes, args.seed, log=lambda line: print(line, flush=True))
+    atomic_write_text(Path(args.out), json.dumps(table, indent=2) + "\n")
+    print(f"wrote {args.out}\n")
+    print(table_markdown(table))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="expert.py", description=__doc__.splitlines()[0])
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    train_parser = commands.add_parser("train", help="train an ARS V2-t expert")
+    train_parser.add_argument("--env", required=True, help="gymnasium id, e.g. Hopper-v4")
+    train_parser.add_argument("--seed", type=int, default=0)
+    train_parser.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1,
+                              help="rollout processes (default: CPU count)")
+    train_parser.add_argument("--resume", action="store_true",
+                              help="continue exactly from the checkpoint")
+    train_parser.add_argument("--checkpoint", help="default: experts/checkpoints/<env>.ckpt.npz")
+    train_parser.add_argument("--out", help="expert file (default: experts/<env>.npz)")
+    add_config_flags(train_parser)
+    train_parser.set_defaults(handler=cli_train)
+
+    demos_parser = commands.add_parser("demos", help="write expert (s, a, s') demonstrations")
+    demos_parser.add_argument("--env", required=True)
+    demos_parser.add_argument("--trajectories", type=positive_int, default=4)
+    demos_parser.add_argument("--sampling", choices=SAMPLING_MODES, default="sparse",
+                              help="sparse: 100 random triplets per trajectory; dense: all 1000")
+    demos_parser.add_argument("--seed", type=int, default=0)
+    demos_parser.add_argument("--expert", help="expert file (default: experts/<env>.npz)")
+    demos_parser.add_argument(
+        "--out", help="default: demos/<env>-<sampling>-<n>traj-seed<seed>.npz")
+    demos_parser.set_defaults(handler=cli_demos)
+
+    minari_parser = commands.add_parser(
+        "import-minari", help="convert a locally stored Minari dataset to a demonstration file")
+    minari_parser.add_argument("dataset_id", help="e.g. mujoco/hopper/expert-v0")
+    minari_parser.add_argument("--env", required=True, help="environment the triplets are for")
+    minari_parser.add_argument("--out", required=True)
+    minari_parser.add_argument("--trajectories", type=positive_int, default=None,
+                               help="use the first N episodes (default: all)")
+    minari_parser.add_argument("--sampling", choices=SAMPLING_MODES, default="dense")
+    minari_parser.add_argument("--seed", type=int, default=0)
+    minari_parser.set_defaults(handler=cli_import_minari)
+
+    check_parser = commands.add_parser("check-demos", help="validate a demonstration file")
+    check_parser.add_argument("file")
+    check_parser.add_argument("--env", required=True)
+    check_parser.set_defaults(handler=cli_check_demos)
+
+    table_parser = commands.add_parser("table", help="measure Table 1 for the -v4 tasks")
+    table_parser.add_argument("--episodes", type=positive_int, default=10)
+    table_parser.add_argument("--seed", type=int, default=0,
+                              help="episode i is reset with seed + i")
+    table_parser.add_argument("--out", default=str(TABLE_PATH))
+    table_parser.set_defaults(handler=cli_table)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    args = build_parser().parse_args(argv)
+    try:
+        args.handler(args, argv)
+    except UserError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

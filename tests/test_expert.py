@@ -1,0 +1,430 @@
+"""Tests for expert.py: demonstrations, their validation, the CLI's errors, Minari import, ARS.
+
+Tests that need an expert use a hand-made linear controller for InvertedPendulum-v4 (it
+balances the pole for the full 1000 steps), so they never wait for a long training run; only
+``test_shipped_hopper_expert_loads_and_acts`` touches a shipped expert.
+"""
+
+import json
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import expert
+from expert import UserError
+
+REPO_DIR = Path(expert.__file__).resolve().parent
+PENDULUM = "InvertedPendulum-v4"  # obs (x, theta, x', theta'), one force in [-3, 3]
+
+
+@pytest.fixture(autouse=True)
+def _quiet_gymnasium():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        yield
+
+
+@pytest.fixture
+def pendulum_expert() -> expert.ExpertPolicy:
+    """Push the cart towards the side the pole leans to: a PD controller that never falls."""
+    return expert.ExpertPolicy(
+        env_id=PENDULUM,
+        weights=np.array([[1.0, 10.0, 1.0, 1.0]]),  # (dim A, dim S)
+        obs_mean=np.zeros(4),
+        obs_std=np.ones(4),
+        action_low=np.array([-3.0]),
+        action_high=np.array([3.0]),
+        metadata={"commands": ["hand-made test controller"]},
+    )
+
+
+@pytest.fixture
+def demo_file(tmp_path, pendulum_expert) -> Path:
+    path = tmp_path / "pendulum-demos.npz"
+    expert.write_demos(path, expert.make_demos(PENDULUM, 2, "sparse", 0, expert=pendulum_expert))
+    return path
+
+
+def rewrite(path: Path, **changes) -> Path:
+    """A copy of a demo file with some arrays replaced (``None`` deletes the key)."""
+    with np.load(path) as file:
+        arrays = {key: file[key] for key in file.files}
+    for key, value in changes.items():
+        if value is None:
+            arrays.pop(key)
+        else:
+            arrays[key] = value
+    broken = path.with_name("broken-" + path.name)
+    np.savez(broken, **arrays)
+    return broken
+
+
+# --- demonstrations ---------------------------------------------------------------------------
+
+
+def test_demo_round_trip(demo_file, pendulum_expert):
+    demos = expert.load_demos(demo_file, PENDULUM)
+    assert len(demos) == 200
+    assert demos.observations.dtype == np.float32 and demos.observations.shape == (200, 4)
+    assert demos.actions.shape == (200, 1) and demos.next_observations.shape == (200, 4)
+    assert demos.terminals.dtype == bool and not demos.terminals.any()
+    assert demos.env_id == PENDULUM and demos.sampling == "sparse"
+    assert demos.trajectories == 2 and demos.seed == 0
+    np.testing.assert_array_equal(demos.returns, [1000.0, 1000.0])
+    # The recorded action is the expert's action at the recorded state (float32 round trip).
+    recomputed = np.array([pendulum_expert.act(s) for s in demos.observations.astype(np.float64)])
+    np.testing.assert_allclose(demos.actions, recomputed, atol=1e-4)
+
+
+def test_sparse_and_dense_counts(pendulum_expert):
+    sparse = expert.make_demos(PENDULUM, 2, "sparse", 1, expert=pendulum_expert)
+    dense = expert.make_demos(PENDULUM, 2, "dense", 1, expert=pendulum_expert)
+    assert len(sparse["observations"]) == 2 * 100
+    assert len(dense["observations"]) == 2 * 1000
+    # Dense triplets chain: s' of step t is s of step t + 1 within a trajectory.
+    np.testing.assert_array_equal(dense["next_observations"][:999], dense["observations"][1:1000])
+    # Sparse triplets are a subset of the same trajectories (same reset seeds).
+    dense_rows = {row.tobytes() for row in dense["observations"]}
+    assert all(row.tobytes() in dense_rows for row in sparse["observations"])
+    assert len({row.tobytes() for row in sparse["observations"]}) == 200  # without replacement
+
+
+def test_demos_are_deterministic_for_a_seed(pendulum_expert):
+    first = expert.make_demos(PENDULUM, 2, "sparse", 7, expert=pendulum_expert)
+    second = expert.make_demos(PENDULUM, 2, "sparse", 7, expert=pendulum_expert)
+    other = expert.make_demos(PENDULUM, 2, "sparse", 8, expert=pendulum_expert)
+    for key in ("observations", "actions", "next_observations", "terminals"):
+        assert first[key].tobytes() == second[key].tobytes()
+    assert first["observations"].tobytes() != other["observations"].tobytes()
+
+
+def test_expert_that_falls_is_refused(pendulum_expert):
+    pendulum_expert.weights = np.zeros((1, 4))  # no control: the pole falls every time
+    with pytest.raises(UserError, match="lasted 1000 steps in only 0 of 3"):
+        expert.make_demos(PENDULUM, 1, "sparse", 0, expert=pendulum_expert, max_attempts=3)
+
+
+def test_ensure_demos_uses_the_cache(tmp_path, monkeypatch, pendulum_expert):
+    monkeypatch.setattr(expert, "DEMOS_DIR", tmp_path)
+    monkeypatch.setattr(expert, "load_expert", lambda env_id: pendulum_expert)
+    path = expert.ensure_demos(PENDULUM, trajectories=1, sampling="sparse", seed=3)
+    assert path == tmp_path / f"{PENDULUM}-sparse-1traj-seed3.npz"
+    assert expert.default_demos_path(PENDULUM, 1, "sparse", 3) == path
+    modified = path.stat().st_mtime_ns
+    assert expert.ensure_demos(PENDULUM, trajectories=1, sampling="sparse", seed=3) == path
+    assert path.stat().st_mtime_ns == modified
+
+
+# --- validation: each failure is a UserError naming the file ---------------------------------
+
+
+BROKEN_FILES = {
+    "wrong obs dim": (dict(observations=np.zeros((200, 5), np.float32)), "observations"),
+    "wrong act dim": (dict(actions=np.zeros((200, 2), np.float32)), "actions"),
+    "NaN": (dict(next_observations=np.full((200, 4), np.nan, np.float32)), "non-finite"),
+    "out of bounds": (dict(actions=np.full((200, 1), 3.5, np.float32)), "action bounds"),
+    "missing key": (dict(actions=None), "missing key"),
+    "mismatched lengths": (dict(terminals=np.zeros(10, bool)), "mismatched lengths"),
+    "wrong env": (dict(env_id=np.array("Hopper-v4")), "Hopper-v4"),
+}
+
+
+@pytest.mark.parametrize("case", BROKEN_FILES)
+def test_load_demos_rejects(demo_file, case):
+    changes, expected = BROKEN_FILES[case]
+    broken = rewrite(demo_file, **changes)
+    with pytest.raises(UserError, match=expected) as error:
+        expert.load_demos(broken, PENDULUM)
+    assert broken.name in str(error.value)
+
+
+def test_load_demos_rejects_zero_triplets(demo_file):
+    empty = {key: np.zeros((0, 4), np.float32) for key in ("observations", "next_observations")}
+    broken = rewrite(
+        demo_file, actions=np.zeros((0, 1), np.float32), terminals=np.zeros(0, bool), **empty
+    )
+    with pytest.raises(UserError, match="zero triplets") as error:
+        expert.load_demos(broken, PENDULUM)
+    assert broken.name in str(error.value)
+
+
+def test_load_demos_rejects_truncated_and_missing_files(demo_file, tmp_path):
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(demo_file.read_bytes()[: demo_file.stat().st_size // 2])
+    with pytest.raises(UserError, match="truncated.npz"):
+        expert.load_demos(truncated, PENDULUM)
+    with pytest.raises(UserError, match="absent.npz"):
+        expert.load_demos(tmp_path / "absent.npz", PENDULUM)
+
+
+def test_load_demos_accepts_files_without_env_id(demo_file):
+    assert len(expert.load_demos(rewrite(demo_file, env_id=None), PENDULUM)) == 200
+
+
+# --- environments and the command line ---------------------------------------------------------
+
+
+def test_make_env_refuses_discrete_and_unknown_envs():
+    with pytest.raises(UserError, match=r"continuous \(Box\) action space.*Discrete\(2\)"):
+        expert.make_env("CartPole-v1")
+    with pytest.raises(UserError, match="NoSuchTask-v0"):
+        expert.make_env("NoSuchTask-v0")
+    env = expert.make_env(PENDULUM)
+    assert expert.env_dimensions(env) == (4, 1)
+    env.close()
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(REPO_DIR / "expert.py"), *args],
+        capture_output=True,
+        text=True,
+        cwd=REPO_DIR,
+        timeout=120,
+    )
+
+
+def test_cli_bad_demo_file_is_one_line_and_exit_2(tmp_path):
+    bad = tmp_path / "bad.npz"
+    bad.write_bytes(b"not a zip file")
+    result = run_cli("check-demos", str(bad), "--env", PENDULUM)
+    assert result.returncode == 2
+    assert result.stderr.count("\n") == 1 and result.stderr.startswith("error: ")
+    assert "bad.npz" in result.stderr
+
+
+def test_cli_discrete_env_is_one_line_and_exit_2(tmp_path):
+    result = run_cli(
+        "train",
+        "--env",
+        "CartPole-v1",
+        "--workers",
+        "1",
+        "--checkpoint",
+        str(tmp_path / "c.npz"),
+        "--out",
+        str(tmp_path / "e.npz"),
+    )
+    assert result.returncode == 2
+    assert result.stderr.count("\n") == 1 and "Discrete(2)" in result.stderr
+    assert list(tmp_path.iterdir()) == []  # nothing half-written
+
+
+# --- Minari import -----------------------------------------------------------------------------
+
+
+def test_minari_import_round_trip(tmp_path, monkeypatch, pendulum_expert):
+    minari = pytest.importorskip("minari")
+    pytest.importorskip("h5py")
+    from minari.data_collector import EpisodeBuffer
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))
+    # Three short episodes of a real environment; the last one ends in a fall (terminal s').
+    env = expert.make_env(PENDULUM)
+    episodes = []
+    for episode, (steps, weights) in enumerate([(20, 1.0), (15, 1.0), (40, 0.0)]):
+        observation, _ = env.reset(seed=episode)
+        observations, actions, rewards, terminations, truncations = [observation], [], [], [], []
+        for t in range(steps):
+            action = np.clip(weights * pendulum_expert.act(observation), -3, 3).astype(np.float32)
+            observation, reward, terminated, _, _ = env.step(action)
+            observations.append(observation)
+            actions.append(action)
+            rewards.append(reward)
+            terminations.append(terminated)
+            truncations.append(not terminated and t == steps - 1)
+            if terminated:
+                break
+        episodes.append(
+            EpisodeBuffer(
+                id=episode,
+                seed=episode,
+                observations=np.array(observations),
+                actions=np.array(actions),
+                rewards=rewards,
+                terminations=terminations,
+                truncations=truncations,
+                infos={},
+            )
+        )
+    minari.create_dataset_from_buffers(
+        "test/pendulum/tiny-v0",
+        episodes,
+        env=env,
+        algorithm_name="hand-made",
+        author="tests",
+        author_email="tests@example.org",
+        code_permalink="-",
+        eval_env=PENDULUM,
+        description="test episodes",
+    )
+    env.close()
+
+    out = tmp_path / "imported.npz"
+    result = expert.main(
+        ["import-minari", "test/pendulum/tiny-v0", "--env", PENDULUM, "--out", str(out)]
+    )
+    assert result == 0
+    demos = expert.load_demos(out, PENDULUM)
+    total = sum(len(episode.actions) for episode in episodes)
+    assert len(demos) == total
+    np.testing.assert_allclose(demos.observations[:20], episodes[0].observations[:-1], rtol=1e-6)
+    np.testing.assert_allclose(
+        demos.next_observations[:20], episodes[0].observations[1:], rtol=1e-6
+    )
+    assert demos.terminals[-1] and demos.terminals.sum() == 1  # only the fall is terminal
+    np.testing.assert_allclose(demos.returns, [sum(e.rewards) for e in episodes])
+
+    assert (
+        expert.main(
+            [
+                "import-minari",
+                "test/absent/none-v0",
+                "--env",
+                PENDULUM,
+                "--out",
+                str(tmp_path / "none.npz"),
+            ]
+        )
+        == 2
+    )
+    assert not (tmp_path / "none.npz").exists()
+
+
+# --- ARS ---------------------------------------------------------------------------------------
+
+
+def fresh_pendulum_run() -> expert.ARSState:
+    config = expert.ARSConfig(
+        step_size=0.05, directions=4, top=2, noise=0.1, survival_bonus=0.0, eval_episodes=3
+    )
+    return expert.ARSState(
+        env_id=PENDULUM,
+        seed=0,
+        config=config,
+        weights=np.zeros((1, 4)),
+        statistics=expert.ObservationStatistics(4),
+        rng=np.random.default_rng(0),
+    )
+
+
+def test_ars_improves_and_resumes_exactly(tmp_path):
+    runner = expert.RolloutRunner(PENDULUM, workers=1)
+    try:
+        untrained = expert.evaluate_linear(fresh_pendulum_run(), runner).mean()
+        straight = fresh_pendulum_run()
+        for _ in range(6):
+            expert.ars_iteration(straight, runner)
+        # The same six iterations, stopped after three and continued from the checkpoint.
+        interrupted = fresh_pendulum_run()
+        for _ in range(3):
+            expert.ars_iteration(interrupted, runner)
+        interrupted.save(tmp_path / "checkpoint.npz")
+        resumed = expert.ARSState.load(tmp_path / "checkpoint.npz")
+        for _ in range(3):
+            expert.ars_iteration(resumed, runner)
+        trained = expert.evaluate_linear(straight, runner).mean()
+    finally:
+        runner.close()
+    np.testing.assert_array_equal(resumed.weights, straight.weights)
+    np.testing.assert_array_equal(resumed.statistics.std(), straight.statistics.std())
+    assert resumed.env_steps == straight.env_steps and resumed.iteration == 6
+    assert trained > untrained + 20, (untrained, trained)
+
+
+def test_train_command_writes_expert_and_checkpoint(tmp_path, capsys):
+    checkpoint, out = tmp_path / "pendulum.ckpt.npz", tmp_path / "pendulum.npz"
+    arguments = [
+        "train",
+        "--env",
+        PENDULUM,
+        "--workers",
+        "1",
+        "--steps",
+        "3000",
+        "--directions",
+        "4",
+        "--top",
+        "2",
+        "--step-size",
+        "0.05",
+        "--noise",
+        "0.1",
+        "--eval-every",
+        "2",
+        "--checkpoint",
+        str(checkpoint),
+        "--out",
+        str(out),
+    ]
+    assert expert.main(arguments) == 0
+    printed = capsys.readouterr().out
+    assert "env steps" in printed and "eval return" in printed
+    policy = expert.load_expert(PENDULUM, out)
+    assert policy.metadata["seed"] == 0 and "train --env" in policy.metadata["commands"][0]
+    assert policy.metadata["env_steps"] > 0 and policy.metadata["wall_seconds"] >= 0
+    assert policy.act(np.zeros(4)).shape == (1,)
+    # Resuming with a bigger budget continues; changing the settings is refused.
+    assert (
+        expert.main(
+            [
+                "train",
+                "--env",
+                PENDULUM,
+                "--workers",
+                "1",
+                "--steps",
+                "4000",
+                "--resume",
+                "--checkpoint",
+                str(checkpoint),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    assert expert.ARSState.load(checkpoint).env_steps >= 4000
+    assert (
+        expert.main(
+            arguments[:5]
+            + ["--resume", "--noise", "0.2", "--checkpoint", str(checkpoint), "--out", str(out)]
+        )
+        == 2
+    )
+
+
+# --- shipped experts and the reference table -----------------------------------------------------
+
+
+def test_shipped_hopper_expert_loads_and_acts():
+    policy = expert.load_expert("Hopper-v4")
+    assert policy.weights.shape == (3, 11)
+    action = policy.act(np.zeros(11))
+    assert action.shape == (3,) and np.all(np.abs(action) <= 1.0)
+    assert "train --env Hopper-v4" in policy.metadata["commands"][0]
+    returns = expert.evaluate("Hopper-v4", policy.act, episodes=1, seed=0)
+    assert returns[0] > 3000
+
+
+def test_reference_returns(tmp_path):
+    table = {
+        "Hopper-v4": dict(
+            dim_s=11, dim_a=3, random_mean=18.0, random_std=1.0, expert_mean=3300.0, expert_std=5.0
+        ),
+        "Ant-v4": dict(
+            dim_s=27, dim_a=8, random_mean=-50.0, random_std=1.0, expert_mean=None, expert_std=None
+        ),
+    }
+    path = tmp_path / "table.json"
+    path.write_text(json.dumps(table))
+    assert expert.reference_returns("Hopper-v4", path) == (18.0, 3300.0)
+    with pytest.raises(UserError, match="Ant-v4"):
+        expert.reference_returns("Ant-v4", path)
+    with pytest.raises(UserError, match="Walker2d-v4"):
+        expert.reference_returns("Walker2d-v4", path)
+    assert "missing" in expert.table_markdown(table)
