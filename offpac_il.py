@@ -1,0 +1,673 @@
+"""Off-policy actor-critic imitation learning, in NumPy.
+
+Sasaki, Yohira & Kawaguchi, "Sample Efficient Imitation Learning for Continuous
+Control", ICLR 2019 (https://openreview.net/forum?id=BkN5UoAqF7). Equation numbers
+below are the paper's.
+
+The method in four lines (Algorithm 1):
+  1. roll out one episode with a = pi_theta(s, z) = tanh(PN(s, z)), z ~ N(0, I) (Sec. 3.2),
+     and store each (s, a, s') in a FIFO replay buffer B_beta;
+  2. then, as many times as the episode had steps:
+  3.   move the critic q_nu (Q = log q, Eq. 10) by objective (18): match q(s, a) to
+       E_z q_nu'(s', pi(s', z))^gamma on expert triplets, and to half of it on replay
+       triplets, in Jensen-Shannon divergence; then soft-update the target critic nu';
+  4.   move the policy by gradient (6): the gradient of log q(s, pi(s, z)) through the
+       critic's action Jacobian, averaged over 128 noise samples per replay state.
+No reward is ever learned: q itself encodes "expert-like now and later" (Sec. 3.1.3).
+
+Run `python offpac_il.py --env Hopper-v4`; `--help` lists every setting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import io
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+import expert
+import nets
+from expert import UserError
+
+# ----------------------------------------------------------------------------------------
+# Hyperparameters (Appendix B unless said otherwise). The command line is made from
+# this dataclass: each field becomes --field-name, its docstring the help text.
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class Config:
+    env: str = "Hopper-v4"
+    """Gymnasium environment id (Box observations, bounded Box actions)."""
+    seed: int = 0
+    """Seed of the run's single numpy Generator and of the environment."""
+    total_steps: int = 300_000
+    """Interaction budget; the learning rates decrease linearly to 0 over it."""
+    demos: str = ""
+    """Demonstration file (.npz); empty: the shipped expert's default demonstrations."""
+    trajectories: int = 4
+    """Expert trajectories in the default demonstrations (Sec. 5.1)."""
+    sampling: str = "sparse"
+    """Default demonstrations: sparse (100 random triplets per trajectory) or dense."""
+    demo_seed: int = 0
+    """Seed of the default demonstrations."""
+
+    policy_hidden: tuple[int, ...] = (100, 100)
+    """PN's hidden layer sizes."""
+    critic_hidden: tuple[int, ...] = (500, 500)
+    """QN's hidden layer sizes."""
+    policy_lr: float = 1e-4
+    """PN's initial RMSProp learning rate."""
+    critic_lr: float = 1e-3
+    """QN's initial RMSProp learning rate."""
+    rmsprop_decay: float = 0.995
+    """RMSProp decay of the mean square."""
+    rmsprop_eps: float = 1e-8
+    """RMSProp epsilon."""
+    tau: float = 1e-3
+    """Target critic tracking rate: nu' <- tau nu + (1 - tau) nu'."""
+    batch_size: int = 64
+    """Triplets per minibatch, from each of the expert and replay buffers."""
+    replay_size: int = 15_000
+    """Capacity of the FIFO replay buffer B_beta."""
+    gamma: float = 0.85
+    """Discount factor."""
+    noise_samples: int = 128
+    """Noise vectors z per replay state in the policy gradient (6)."""
+    target_samples: int = 8
+    """Noise vectors z per next state in the critic's target E_z q'(s', pi(s', z))^gamma."""
+
+    termination: str = "zero"
+    """At a terminal s': bootstrap (literal Alg. 1), absorbing (DAC), or zero (q'^gamma=0)."""
+    standardize: bool = True
+    """Standardise states by the demonstrations' mean and std (+1e-3)."""
+    critic_reg: float = 0.0
+    """Weight of D_JS(q_nu(s,a) || q_nu'(s,a)), the submitted version's critic regulariser."""
+
+    eval_every: int = 5_000
+    """Interactions between evaluations."""
+    eval_episodes: int = 5
+    """Episodes per evaluation (stochastic policy, true reward)."""
+    run_dir: str = ""
+    """Run directory; empty: runs/<env>-seed<seed>."""
+    checkpoint_every: float = 120.0
+    """Seconds between checkpoints (taken at episode ends); 0: after every episode."""
+    log_every: float = 10.0
+    """Seconds between progress lines for training episodes (evaluations always print)."""
+
+
+TERMINATIONS = ("bootstrap", "absorbing", "zero")
+SAMPLINGS = ("sparse", "dense")
+
+
+def check_config(config: Config) -> None:
+    """Refuse settings that cannot work, with one clear message."""
+    if config.termination not in TERMINATIONS:
+        raise UserError(f"--termination must be one of {', '.join(TERMINATIONS)}")
+    if config.sampling not in SAMPLINGS:
+        raise UserError(f"--sampling must be one of {', '.join(SAMPLINGS)}")
+    for name in ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples",
+                 "target_samples", "eval_every", "eval_episodes"):
+        if getattr(config, name) < 1:
+            raise UserError(f"--{name.replace('_', '-')} must be at least 1")
+    if not 0.0 <= config.gamma < 1.0:
+        raise UserError("--gamma must lie in [0, 1)")
+
+
+# ----------------------------------------------------------------------------------------
+# Spaces: the learner acts in [-1, 1]^dim A (GUIDE 2, action scaling) and sees
+# standardised states, with one extra indicator input for the absorbing state.
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class Spaces:
+    """Maps between the environment's units and the networks' units."""
+
+    low: np.ndarray
+    high: np.ndarray
+    state_mean: np.ndarray
+    state_std: np.ndarray
+    absorbing: bool
+
+    def to_env_action(self, action: np.ndarray) -> np.ndarray:
+        """[-1, 1] -> [low, high]: low + (a + 1)(high - low)/2."""
+        return self.low + (action + 1.0) * (self.high - self.low) / 2.0
+
+    def from_env_action(self, env_action: np.ndarray) -> np.ndarray:
+        """[low, high] -> [-1, 1], clipped at the bounds."""
+        scaled = 2.0 * (env_action - self.low) / (self.high - self.low) - 1.0
+        return np.clip(scaled, -1.0, 1.0).astype(np.float32)
+
+    def state(self, observation: np.ndarray) -> np.ndarray:
+        """Network state: standardised observation, plus a 0 indicator when absorbing."""
+        s = ((observation - self.state_mean) / self.state_std).astype(np.float32)
+        if self.absorbing:
+            s = np.concatenate([s, np.zeros((*s.shape[:-1], 1), np.float32)], axis=-1)
+        return s
+
+    def absorbing_state(self) -> np.ndarray:
+        """DAC's absorbing state: zeros with the indicator set."""
+        s = np.zeros(len(self.state_mean) + 1, np.float32)
+        s[-1] = 1.0
+        return s
+
+
+def make_spaces(env, demos: expert.Demos, config: Config) -> Spaces:
+    obs_dim = env.observation_space.shape[0]
+    if config.standardize:  # GUIDE 2: as DAC and ValueDICE do
+        mean = demos.observations.mean(axis=0)
+        std = demos.observations.std(axis=0) + 1e-3
+    else:
+        mean, std = np.zeros(obs_dim, np.float32), np.ones(obs_dim, np.float32)
+    return Spaces(env.action_space.low.astype(np.float32),
+                  env.action_space.high.astype(np.float32),
+                  mean.astype(np.float32), std.astype(np.float32),
+                  absorbing=config.termination == "absorbing")
+
+
+# ----------------------------------------------------------------------------------------
+# Buffers of (s, a, s') triplets. `terminal` marks a terminal s' (not a time limit).
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class Triplets:
+    states: np.ndarray  # (N, dim s)
+    actions: np.ndarray  # (N, dim A), in [-1, 1]
+    next_states: np.ndarray  # (N, dim s)
+    terminal: np.ndarray  # (N,) bool
+
+
+class ReplayBuffer:
+    """B_beta: a FIFO of the most recent `capacity` triplets (Sec. 3.3)."""
+
+    def __init__(self, capacity: int, state_dim: int, action_dim: int):
+        self.capacity, self.size, self.next_index = capacity, 0, 0
+        self.data = Triplets(np.zeros((capacity, state_dim), np.float32),
+                             np.zeros((capacity, action_dim), np.float32),
+                             np.zeros((capacity, state_dim), np.float32),
+                             np.zeros(capacity, bool))
+
+    def add(self, state, action, next_state, terminal: bool) -> None:
+        i = self.next_index
+        self.data.states[i], self.data.actions[i] = state, action
+        self.data.next_states[i], self.data.terminal[i] = next_state, terminal
+        self.next_index = (i + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, rng: np.random.Generator, n: int) -> Triplets:
+        return take(self.data, rng.integers(0, self.size, n))
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {"replay/states": self.data.states, "replay/actions": self.data.actions,
+                "replay/next_states": self.data.next_states,
+                "replay/terminal": self.data.terminal,
+                "replay/size_next": np.array([self.size, self.next_index])}
+
+    def load_state(self, arrays) -> None:
+        for name in ("states", "actions", "next_states", "terminal"):
+            getattr(self.data, name)[...] = arrays[f"replay/{name}"]
+        self.size, self.next_index = (int(v) for v in arrays["replay/size_next"])
+
+
+def take(triplets: Triplets, index: np.ndarray) -> Triplets:
+    return Triplets(triplets.states[index], triplets.actions[index],
+                    triplets.next_states[index], triplets.terminal[index])
+
+
+def expert_buffer_from(demos: expert.Demos, spaces: Spaces) -> Triplets:
+    """B_pi_E: every demonstration triplet, in the networks' units."""
+    return Triplets(spaces.state(demos.observations),
+                    spaces.from_env_action(demos.actions),
+                    spaces.state(demos.next_observations),
+                    demos.terminals.astype(bool))
+
+
+# ----------------------------------------------------------------------------------------
+# The learner: networks, the critic step (18) and the policy step (6).
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class Learner:
+    """pi_theta = tanh(PN([s, z])) and q_nu = sigmoid(QN([s, a])), with target q_nu'."""
+
+    policy: nets.MLP
+    critic: nets.MLP
+    target_critic: nets.MLP
+    noise_dim: int
+    policy_optimizer: nets.RMSProp = field(default_factory=nets.RMSProp)
+    critic_optimizer: nets.RMSProp = field(default_factory=nets.RMSProp)
+
+    @classmethod
+    def create(cls, state_dim, noise_dim, action_dim, config: Config, rng, dtype=np.float32):
+        policy = nets.MLP.create([state_dim + noise_dim, *config.policy_hidden, action_dim],
+                                 "tanh", rng, dtype)
+        critic = nets.MLP.create([state_dim + action_dim, *config.critic_hidden, 1],
+                                 "sigmoid", rng, dtype)
+        return cls(policy, critic, critic.copy(), noise_dim,
+                   nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps),
+                   nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps))
+
+    def act(self, states: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """a = tanh(PN([s, z])) in [-1, 1]. `states` may be shared over the noise rows."""
+        return self.policy.forward((states, noise))[0]
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {**self.policy.state("policy"), **self.critic.state("critic"),
+                **self.target_critic.state("target_critic"),
+                **self.policy_optimizer.state("policy_rmsprop"),
+                **self.critic_optimizer.state("critic_rmsprop")}
+
+    def load_state(self, arrays) -> None:
+        self.policy.load_state(arrays, "policy")
+        self.critic.load_state(arrays, "critic")
+        self.target_critic.load_state(arrays, "target_critic")
+        self.policy_optimizer.load_state(arrays, "policy_rmsprop")
+        self.critic_optimizer.load_state(arrays, "critic_rmsprop")
+
+
+def chunks_of(n_states: int, rows_per_state: int) -> list[slice]:
+    """Slices of states whose rows (states x samples) fill about 128 rows each.
+
+    128 rows x 500 units of float32 are 256 KB: a chunk's activations stay in the L2
+    cache while the element-wise passes run over them.
+    """
+    per_chunk = max(1, 128 // rows_per_state)
+    return [slice(lo, min(n_states, lo + per_chunk)) for lo in range(0, n_states, per_chunk)]
+
+
+def critic_targets(learner: Learner, batch: Triplets, from_replay: np.ndarray,
+                   config: Config, rng: np.random.Generator) -> np.ndarray:
+    """t = E_z[q_nu'(s', pi(s', z))^gamma], halved for replay rows (Eq. 17-18).
+
+    The expectation is a mean over `target_samples` noise vectors per next state. At a
+    terminal s' under termination="zero" the continuation q'^gamma is 0; under
+    "bootstrap" the terminal s' is treated like any other; under "absorbing" the next
+    state is the absorbing state, which the critic learns like any other.
+    No gradient flows through t.
+    """
+    k = config.target_samples
+    noise = rng.standard_normal((len(batch.next_states) * k, learner.noise_dim), np.float32)
+
+    def chunk_targets(rows: slice) -> np.ndarray:
+        next_states = batch.next_states[rows]  # (C, dim s), each shared by k noise rows
+        z = noise[rows.start * k: rows.stop * k]  # (C*k, dim z)
+        next_actions = learner.act(next_states, z)  # (C*k, dim A)
+        _, cache = learner.target_critic.forward((next_states, next_actions))
+        log_q = nets.log_sigmoid(cache.logits).reshape(-1, k)  # (C, k): log q'(s', a'_k)
+        return np.exp(config.gamma * log_q).mean(axis=1)  # (C,): mean_k q'^gamma
+
+    t = np.concatenate(nets.map_chunks(chunk_targets, chunks_of(len(noise) // k, k)))
+    if config.termination == "zero":
+        t[batch.terminal] = 0.0
+    t[from_replay] *= 0.5  # the "/2" of Eq. (17)-(18): replay pairs earn r = 1/2
+    return t
+
+
+def critic_step(learner: Learner, expert_batch: Triplets, replay_batch: Triplets,
+                config: Config, lr: float, rng: np.random.Generator) -> dict[str, float]:
+    """One RMSProp step on objective (18), then the target update (Appendix B)."""
+    n = len(expert_batch.states)
+    batch = Triplets(*(np.concatenate([e, r]) for e, r in zip(
+        dataclasses.astuple(expert_batch), dataclasses.astuple(replay_batch), strict=True)))
+    from_replay = np.arange(len(batch.states)) >= n
+    t = critic_targets(learner, batch, from_replay, config, rng)[:, None]  # (2n, 1)
+
+    _, cache = learner.critic.forward((batch.states, batch.actions))
+    x = cache.logits  # (2n, 1): p = q_nu(s, a) = sigmoid(x), Eq. (10)
+    # Eq. (18): mean over expert rows of D_JS(P_nu || t) + mean over replay rows of the same.
+    loss = nets.js_divergence(x, t).sum() / n
+    d_x = nets.js_divergence_grad(x, t) / n  # (2n, 1): dD_JS/dx = 1/2 p(1-p)(logit p - logit m)
+    if config.critic_reg > 0:
+        # Submitted version's regulariser: D_JS(q_nu(s,a) || q_nu'(s,a)) on the same rows.
+        _, target_cache = learner.target_critic.forward((batch.states, batch.actions))
+        q_target = nets.sigmoid(target_cache.logits)
+        loss += config.critic_reg * nets.js_divergence(x, q_target).mean()
+        d_x += config.critic_reg * nets.js_divergence_grad(x, q_target) / len(x)
+    _, grads = learner.critic.backward(d_x, cache, through_head=False)
+    learner.critic_optimizer.step(learner.critic.params, grads, lr)
+    nets.soft_update(learner.target_critic, learner.critic, config.tau)
+    q = cache.output[:, 0]
+    return {"critic_loss": float(loss), "q_expert": float(q[:n].mean()),
+            "q_replay": float(q[n:].mean())}
+
+
+def policy_gradient(learner: Learner, states: np.ndarray, noise: np.ndarray, total_rows: int):
+    """Gradient (6) of -mean log q(s, pi(s, z)) w.r.t. PN's parameters, and diagnostics.
+
+    states: (B, dim s); noise: (B*Z, dim z), Z noise vectors per state. Returns
+    (grads, sum of q, count of saturated action components); sums, so that chunks add up.
+    """
+    actions, policy_cache = learner.policy.forward((states, noise))  # (B*Z, dim A)
+    _, critic_cache = learner.critic.forward((states, actions))  # logits (B*Z, 1)
+    # d(-log q)/dx = -(1 - q) (Eq. 10), averaged over every (state, noise) row: gradient (6).
+    d_x = -nets.log_sigmoid_grad(critic_cache.logits) / total_rows
+    # The critic's action Jacobian, without its weight gradients: the critic stays fixed.
+    (_, d_actions), _ = learner.critic.backward(d_x, critic_cache, through_head=False,
+                                                param_grads=False)
+    _, grads = learner.policy.backward(d_actions, policy_cache)  # through tanh and PN
+    saturated = np.count_nonzero(np.abs(actions) > 0.99)
+    return grads, float(critic_cache.output.sum()), saturated
+
+
+def policy_step(learner: Learner, replay_states: np.ndarray, config: Config, lr: float,
+                rng: np.random.Generator) -> dict[str, float]:
+    """One RMSProp step on PN by gradient (6), over `noise_samples` z per state."""
+    z_per_state = config.noise_samples
+    noise = rng.standard_normal((len(replay_states) * z_per_state, learner.noise_dim),
+                                np.float32)
+
+    def chunk(rows: slice):
+        return policy_gradient(learner, replay_states[rows],
+                               noise[rows.start * z_per_state: rows.stop * z_per_state], len(noise))
+
+    parts = nets.map_chunks(chunk, chunks_of(len(replay_states), z_per_state))
+    grads = {name: sum(p[0][name] for p in parts[1:]) + parts[0][0][name]
+             for name in parts[0][0]}  # the chunks' partial sums, in a fixed order
+    learner.policy_optimizer.step(learner.policy.params, grads, lr)
+    grad_norm = math.sqrt(sum(float((g * g).sum()) for g in grads.values()))
+    return {"q_policy": sum(p[1] for p in parts) / len(noise),
+            "saturation": sum(p[2] for p in parts) / noise.size,
+            "policy_grad_norm": grad_norm}
+
+
+def update(learner: Learner, expert_buffer: Triplets, replay: ReplayBuffer, config: Config,
+           interactions: int, rng: np.random.Generator) -> dict[str, float]:
+    """Algorithm 1, lines 11-14: a critic step, the target update and a policy step."""
+    critic_lr = nets.linear_decay(config.critic_lr, interactions, config.total_steps)
+    policy_lr = nets.linear_decay(config.policy_lr, interactions, config.total_steps)
+    expert_batch = take(expert_buffer, rng.integers(0, len(expert_buffer.states),
+                                                    config.batch_size))
+    stats = critic_step(learner, expert_batch, replay.sample(rng, config.batch_size),
+                        config, critic_lr, rng)
+    replay_states = replay.sample(rng, config.batch_size).states  # line 13: a fresh batch
+    stats.update(policy_step(learner, replay_states, config, policy_lr, rng))
+    return stats
+
+
+# ----------------------------------------------------------------------------------------
+# Acting in the environment: one episode (Alg. 1, lines 4-9) and evaluation.
+# ----------------------------------------------------------------------------------------
+
+
+def run_episode(env, learner: Learner, spaces: Spaces, rng: np.random.Generator,
+                seed: int, replay: ReplayBuffer | None = None) -> tuple[float, int]:
+    """One episode with a_t = pi_theta(s_t, z), z ~ N(0, I); stores triplets if `replay`.
+
+    Returns (true return, length). Only `terminated` ends the value chain; a time-limit
+    truncation bootstraps like any other step (GUIDE 2).
+    """
+    observation, _ = env.reset(seed=seed)
+    state = spaces.state(observation)
+    episode_return, length, done = 0.0, 0, False
+    while not done:
+        noise = rng.standard_normal((1, learner.noise_dim), np.float32)
+        action = learner.act(state[None], noise)[0]
+        observation, reward, terminated, truncated, _ = env.step(spaces.to_env_action(action))
+        next_state = spaces.state(observation)
+        episode_return, length, done = episode_return + reward, length + 1, terminated or truncated
+        if replay is not None:
+            if terminated and spaces.absorbing:
+                # DAC: s_T leads to the absorbing state, which leads to itself.
+                absorbing = spaces.absorbing_state()
+                replay.add(state, action, absorbing, False)
+                replay.add(absorbing, np.zeros_like(action), absorbing, False)
+            else:
+                replay.add(state, action, next_state, terminated)
+        state = next_state
+    return float(episode_return), length
+
+
+def evaluate(env, learner: Learner, spaces: Spaces, config: Config, round_index: int):
+    """True returns of the stochastic policy over `eval_episodes` seeded episodes.
+
+    Evaluation has its own Generator (seeded from the run's seed and the round), so it
+    never shifts the training noise: a run evaluated more often learns the same way.
+    """
+    rng = np.random.default_rng([config.seed, 1, round_index])
+    return np.array([run_episode(env, learner, spaces, rng, seed=10**6 + config.seed * 1000 + i)[0]
+                     for i in range(config.eval_episodes)])
+
+
+# ----------------------------------------------------------------------------------------
+# The run: directory, progress file, checkpoints, and the main loop.
+# ----------------------------------------------------------------------------------------
+
+PROGRESS_FIELDS = ("interactions", "wall_seconds", "updates", "episodes", "eval_return_mean",
+                   "eval_return_std", "normalized_score", "train_return", "q_expert",
+                   "q_replay", "q_policy", "saturation", "critic_loss", "policy_grad_norm")
+
+
+@dataclass
+class Progress:
+    """Counters that a checkpoint must restore, besides networks, buffer and Generator."""
+
+    interactions: int = 0
+    updates: int = 0
+    episodes: int = 0
+    eval_rounds: int = 0
+    wall_seconds: float = 0.0
+    best_eval_return: float = -math.inf
+    rows: list[dict] = field(default_factory=list)
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def progress_csv(rows: list[dict]) -> str:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=PROGRESS_FIELDS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return out.getvalue()
+
+
+def save_checkpoint(run_dir: Path, learner: Learner, replay: ReplayBuffer,
+                    progress: Progress, rng: np.random.Generator) -> None:
+    """Everything needed to continue exactly, in one atomic file; then progress.csv."""
+    counters = {k: v for k, v in dataclasses.asdict(progress).items() if k != "rows"}
+    nets.save_arrays(run_dir / "checkpoint.npz", {
+        **learner.state(), **replay.state(),
+        "rng": np.array(json.dumps(rng.bit_generator.state)),
+        "counters": np.array(json.dumps(counters)),
+        "rows": np.array(json.dumps(progress.rows)),
+    })
+    write_text_atomic(run_dir / "progress.csv", progress_csv(progress.rows))
+
+
+def load_checkpoint(run_dir: Path, learner: Learner, replay: ReplayBuffer,
+                    rng: np.random.Generator) -> Progress:
+    arrays = nets.load_arrays(run_dir / "checkpoint.npz")
+    learner.load_state(arrays)
+    replay.load_state(arrays)
+    rng.bit_generator.state = json.loads(str(arrays["rng"]))
+    progress = Progress(**json.loads(str(arrays["counters"])))
+    # progress.csv may hold rows written after this checkpoint: the checkpoint's own
+    # copy of the rows is the truth, so a resumed run rewrites the file from it.
+    progress.rows = json.loads(str(arrays["rows"]))
+    return progress
+
+
+def train(config: Config, resume: bool = False) -> Progress:
+    """Algorithm 1, with evaluation, logging and checkpoints around it."""
+    check_config(config)
+    run_dir = Path(config.run_dir or f"runs/{config.env}-seed{config.seed}")
+    if not resume and (run_dir / "checkpoint.npz").exists():
+        raise UserError(f"{run_dir} already holds a run; continue it with --resume {run_dir}"
+                        " or choose another --run-dir")
+    env, eval_env = expert.make_env(config.env), expert.make_env(config.env)
+    random_return, expert_return = expert.reference_returns(config.env)
+    demo_path = Path(config.demos) if config.demos else expert.ensure_demos(
+        config.env, config.trajectories, config.sampling, config.demo_seed)
+    demos = expert.load_demos(demo_path, config.env)
+    spaces = make_spaces(env, demos, config)
+    expert_buffer = expert_buffer_from(demos, spaces)
+    state_dim, action_dim = expert_buffer.states.shape[1], expert_buffer.actions.shape[1]
+
+    rng = np.random.default_rng(config.seed)  # the run's one Generator (GUIDE 3)
+    env.action_space.seed(config.seed)
+    learner = Learner.create(state_dim, env.observation_space.shape[0], action_dim, config, rng)
+    replay = ReplayBuffer(config.replay_size, state_dim, action_dim)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if resume:
+        progress = load_checkpoint(run_dir, learner, replay, rng)
+        print(f"resumed {run_dir} at {progress.interactions} interactions", flush=True)
+    else:
+        progress = Progress()
+        write_text_atomic(run_dir / "config.json",
+                          json.dumps(dataclasses.asdict(config), indent=2) + "\n")
+
+    def normalized(value: float) -> float:
+        return (value - random_return) / (expert_return - random_return)
+
+    started = time.perf_counter() - progress.wall_seconds
+    last_checkpoint = last_log = time.perf_counter()
+    recent_returns: list[float] = []
+    stats: dict[str, float] = {}
+    while True:
+        # Evaluate at 0 and every eval_every interactions (at the episode end that crosses it).
+        if progress.interactions >= progress.eval_rounds * config.eval_every or (
+                progress.interactions >= config.total_steps):
+            returns = evaluate(eval_env, learner, spaces, config, progress.eval_rounds)
+            progress.eval_rounds += 1
+            progress.wall_seconds = time.perf_counter() - started
+            row = {"interactions": progress.interactions,
+                   "wall_seconds": round(progress.wall_seconds, 1),
+                   "updates": progress.updates, "episodes": progress.episodes,
+                   "eval_return_mean": round(float(returns.mean()), 2),
+                   "eval_return_std": round(float(returns.std()), 2),
+                   "normalized_score": round(normalized(float(returns.mean())), 4),
+                   "train_return": round(float(np.mean(recent_returns)), 2)
+                   if recent_returns else "",
+                   **{k: round(stats[k], 5) if k in stats else ""
+                      for k in PROGRESS_FIELDS[8:]}}
+            progress.rows.append(row)
+            recent_returns.clear()
+            if returns.mean() > progress.best_eval_return:
+                progress.best_eval_return = float(returns.mean())
+                nets.save_arrays(run_dir / "policy_best.npz", learner.policy.state("policy"))
+            print(f"eval  {progress.interactions:>8d} steps  return {returns.mean():8.1f}"
+                  f" ± {returns.std():6.1f}  score {row['normalized_score']:6.3f}"
+                  f"  q_E {stats.get('q_expert', math.nan):.3f}"
+                  f"  q_B {stats.get('q_replay', math.nan):.3f}"
+                  f"  sat {stats.get('saturation', math.nan):.2f}", flush=True)
+            save_checkpoint(run_dir, learner, replay, progress, rng)
+            last_checkpoint = time.perf_counter()
+        if progress.interactions >= config.total_steps:
+            break
+
+        # Alg. 1, lines 4-9: one episode with the current policy.
+        seed = int(rng.integers(2**31))
+        episode_return, length = run_episode(env, learner, spaces, rng, seed, replay)
+        recent_returns.append(episode_return)
+        progress.episodes += 1
+        # Lines 10-15: as many updates as the episode had steps.
+        update_start = time.perf_counter()
+        for _ in range(length):
+            stats = update(learner, expert_buffer, replay, config, progress.interactions, rng)
+            progress.updates += 1
+        update_seconds = time.perf_counter() - update_start
+        progress.interactions += length
+
+        now = time.perf_counter()
+        progress.wall_seconds = now - started
+        if now - last_log >= config.log_every:
+            rate = progress.interactions / max(progress.wall_seconds, 1e-9)
+            eta = (config.total_steps - progress.interactions) / max(rate, 1e-9)
+            print(f"train {progress.interactions:>8d} steps  return {episode_return:8.1f}"
+                  f" ({length:4d} steps)  score {normalized(episode_return):6.3f}"
+                  f"  {length / max(update_seconds, 1e-9):5.1f} updates/s"
+                  f"  ETA {eta / 60:6.1f} min", flush=True)
+            last_log = now
+        if now - last_checkpoint >= config.checkpoint_every:
+            save_checkpoint(run_dir, learner, replay, progress, rng)
+            last_checkpoint = now
+
+    nets.save_arrays(run_dir / "policy_final.npz", learner.policy.state("policy"))
+    return progress
+
+
+# ----------------------------------------------------------------------------------------
+# Command line, generated from Config.
+# ----------------------------------------------------------------------------------------
+
+
+def field_docs(cls) -> dict[str, str]:
+    """Each field's docstring (the string literal right after it in the class body)."""
+    import ast
+    import inspect
+
+    body = ast.parse(inspect.getsource(cls)).body[0].body
+    docs = {}
+    for node, following in zip(body, body[1:], strict=False):
+        if isinstance(node, ast.AnnAssign) and isinstance(following, ast.Expr):
+            docs[node.target.id] = following.value.value
+    return docs
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        description="Off-policy actor-critic imitation learning (Sasaki et al., ICLR 2019).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    docs = field_docs(Config)
+    for f in dataclasses.fields(Config):
+        flag, default = "--" + f.name.replace("_", "-"), f.default
+        if isinstance(default, bool):
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default,
+                                help=docs[f.name])
+        elif isinstance(default, tuple):
+            parser.add_argument(flag, type=int, nargs="+", default=default, help=docs[f.name])
+        else:
+            parser.add_argument(flag, type=type(default), default=default, help=docs[f.name])
+    parser.add_argument("--resume", metavar="RUN_DIR", default="",
+                        help="continue the run in RUN_DIR from its last checkpoint, with its "
+                             "saved settings (other flags are ignored)")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.resume:
+            run_dir = Path(args.resume)
+            try:
+                saved = json.loads((run_dir / "config.json").read_text())
+            except (OSError, ValueError):
+                raise UserError(f"{run_dir} holds no run to resume (config.json missing or "
+                                "unreadable)") from None
+            if not (run_dir / "checkpoint.npz").exists():
+                raise UserError(f"{run_dir} holds no checkpoint to resume from")
+            saved = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()}
+            config = Config(**{**saved, "run_dir": str(run_dir)})
+        else:
+            config = Config(**{f.name: (tuple(v) if isinstance(v, list) else v)
+                               for f in dataclasses.fields(Config)
+                               for v in [getattr(args, f.name)]})
+        with threadpool_limits(limits=1, user_api="blas"):  # threads come from map_chunks
+            train(config, resume=bool(args.resume))
+    except UserError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted; continue with --resume", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
