@@ -641,7 +641,7 @@ class ObservationStatistics:
         if self.count < 2:
             return np.ones_like(self.mean)
         variance = self.squared_deviations / (self.count - 1)
-        return np.where(variance > 1e-8, np.sqrt(np.maximum(variance, 1e-8)), 1.0)
+        return np.where(variance > 1e-8, np.sqrt(variance), 1.0)
 
 
 # Each worker process keeps its own environment between tasks (made once by the initializer).
@@ -713,6 +713,14 @@ class RolloutRunner:
             self.pool.join()
         else:
             self.env.close()
+
+    def __enter__(self) -> RolloutRunner:
+        return self
+
+    def __exit__(self, error_type, error, traceback) -> None:
+        if self.pool is not None and error_type is not None:
+            self.pool.terminate()  # e.g. Ctrl-C: do not wait for workers that were interrupted
+        self.close()
 
 
 @dataclass
@@ -857,8 +865,8 @@ def train(
     """Run ARS V2-t until ``config.steps`` environment steps; keep the best evaluated policy."""
     env = make_env(env_id)
     dim_s, dim_a = env_dimensions(env)
-    action_low, action_high = env.action_space.low.astype(np.float64), \
-        env.action_space.high.astype(np.float64)
+    action_low = env.action_space.low.astype(np.float64)
+    action_high = env.action_space.high.astype(np.float64)
     env.close()
     if resume:
         if not checkpoint_path.exists():
@@ -908,14 +916,13 @@ def train(
                 f"it is replaced only by a better evaluation")
         except UserError:
             pass
-    runner = RolloutRunner(env_id, workers)
     started, last_checkpoint = time.monotonic(), time.monotonic()
     wall_at_start = state.wall_seconds
-    try:
+    with RolloutRunner(env_id, workers) as runner:
         while state.env_steps < state.config.steps:
             ars_iteration(state, runner)
-            if state.iteration % state.config.eval_every == 0 or \
-                    state.env_steps >= state.config.steps:
+            finished = state.env_steps >= state.config.steps
+            if state.iteration % state.config.eval_every == 0 or finished:
                 returns = evaluate_linear(state, runner)
                 state.wall_seconds = wall_at_start + time.monotonic() - started
                 improved = returns.mean() > state.best_return
@@ -934,10 +941,12 @@ def train(
                 state.save(checkpoint_path)
                 last_checkpoint = time.monotonic()
         state.save(checkpoint_path)
-    finally:
-        runner.close()
-    log(f"done: best eval return {state.best_return:.1f} ± {state.best_return_std:.1f} at "
-        f"{state.best_env_steps} env steps; expert in {expert_path}")
+    if state.best_weights is None:
+        log(f"done: no evaluation beat the existing {expert_path} (eval return "
+            f"{state.best_return:.1f}); left it unchanged")
+    else:
+        log(f"done: best eval return {state.best_return:.1f} ± {state.best_return_std:.1f} at "
+            f"{state.best_env_steps} env steps; expert in {expert_path}")
     return state
 
 
