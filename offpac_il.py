@@ -116,8 +116,16 @@ def check_config(config: Config) -> None:
         raise UserError(f"--termination must be one of {', '.join(TERMINATIONS)}")
     if config.sampling not in SAMPLINGS:
         raise UserError(f"--sampling must be one of {', '.join(SAMPLINGS)}")
-    for name in ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples",
-                 "target_samples", "eval_every", "eval_episodes"):
+    for name in (
+        "total_steps",
+        "trajectories",
+        "batch_size",
+        "replay_size",
+        "noise_samples",
+        "target_samples",
+        "eval_every",
+        "eval_episodes",
+    ):
         if getattr(config, name) < 1:
             raise UserError(f"--{name.replace('_', '-')} must be at least 1")
     if not 0.0 <= config.gamma < 1.0:
@@ -170,10 +178,13 @@ def make_spaces(env, demos: expert.Demos, config: Config) -> Spaces:
         std = demos.observations.std(axis=0) + 1e-3
     else:
         mean, std = np.zeros(obs_dim, np.float32), np.ones(obs_dim, np.float32)
-    return Spaces(env.action_space.low.astype(np.float32),
-                  env.action_space.high.astype(np.float32),
-                  mean.astype(np.float32), std.astype(np.float32),
-                  absorbing=config.termination == "absorbing")
+    return Spaces(
+        env.action_space.low.astype(np.float32),
+        env.action_space.high.astype(np.float32),
+        mean.astype(np.float32),
+        std.astype(np.float32),
+        absorbing=config.termination == "absorbing",
+    )
 
 
 # ----------------------------------------------------------------------------------------
@@ -194,10 +205,12 @@ class ReplayBuffer:
 
     def __init__(self, capacity: int, state_dim: int, action_dim: int):
         self.capacity, self.size, self.next_index = capacity, 0, 0
-        self.data = Triplets(np.zeros((capacity, state_dim), np.float32),
-                             np.zeros((capacity, action_dim), np.float32),
-                             np.zeros((capacity, state_dim), np.float32),
-                             np.zeros(capacity, bool))
+        self.data = Triplets(
+            np.zeros((capacity, state_dim), np.float32),
+            np.zeros((capacity, action_dim), np.float32),
+            np.zeros((capacity, state_dim), np.float32),
+            np.zeros(capacity, bool),
+        )
 
     def add(self, state, action, next_state, terminal: bool) -> None:
         i = self.next_index
@@ -210,10 +223,13 @@ class ReplayBuffer:
         return take(self.data, rng.integers(0, self.size, n))
 
     def state(self) -> dict[str, np.ndarray]:
-        return {"replay/states": self.data.states, "replay/actions": self.data.actions,
-                "replay/next_states": self.data.next_states,
-                "replay/terminal": self.data.terminal,
-                "replay/size_next": np.array([self.size, self.next_index])}
+        return {
+            "replay/states": self.data.states,
+            "replay/actions": self.data.actions,
+            "replay/next_states": self.data.next_states,
+            "replay/terminal": self.data.terminal,
+            "replay/size_next": np.array([self.size, self.next_index]),
+        }
 
     def load_state(self, arrays) -> None:
         for name in ("states", "actions", "next_states", "terminal"):
@@ -222,16 +238,22 @@ class ReplayBuffer:
 
 
 def take(triplets: Triplets, index: np.ndarray) -> Triplets:
-    return Triplets(triplets.states[index], triplets.actions[index],
-                    triplets.next_states[index], triplets.terminal[index])
+    return Triplets(
+        triplets.states[index],
+        triplets.actions[index],
+        triplets.next_states[index],
+        triplets.terminal[index],
+    )
 
 
 def expert_buffer_from(demos: expert.Demos, spaces: Spaces) -> Triplets:
     """B_pi_E: every demonstration triplet, in the networks' units."""
-    return Triplets(spaces.state(demos.observations),
-                    spaces.from_env_action(demos.actions),
-                    spaces.state(demos.next_observations),
-                    demos.terminals.astype(bool))
+    return Triplets(
+        spaces.state(demos.observations),
+        spaces.from_env_action(demos.actions),
+        spaces.state(demos.next_observations),
+        demos.terminals.astype(bool),
+    )
 
 
 # ----------------------------------------------------------------------------------------
@@ -252,23 +274,33 @@ class Learner:
 
     @classmethod
     def create(cls, state_dim, noise_dim, action_dim, config: Config, rng, dtype=np.float32):
-        policy = nets.MLP.create([state_dim + noise_dim, *config.policy_hidden, action_dim],
-                                 "tanh", rng, dtype)
-        critic = nets.MLP.create([state_dim + action_dim, *config.critic_hidden, 1],
-                                 "sigmoid", rng, dtype)
-        return cls(policy, critic, critic.copy(), noise_dim,
-                   nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps),
-                   nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps))
+        policy = nets.MLP.create(
+            [state_dim + noise_dim, *config.policy_hidden, action_dim], "tanh", rng, dtype
+        )
+        critic = nets.MLP.create(
+            [state_dim + action_dim, *config.critic_hidden, 1], "sigmoid", rng, dtype
+        )
+        return cls(
+            policy,
+            critic,
+            critic.copy(),
+            noise_dim,
+            nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps),
+            nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps),
+        )
 
     def act(self, states: np.ndarray, noise: np.ndarray) -> np.ndarray:
         """a = tanh(PN([s, z])) in [-1, 1]. `states` may be shared over the noise rows."""
         return self.policy.forward((states, noise))[0]
 
     def state(self) -> dict[str, np.ndarray]:
-        return {**self.policy.state("policy"), **self.critic.state("critic"),
-                **self.target_critic.state("target_critic"),
-                **self.policy_optimizer.state("policy_rmsprop"),
-                **self.critic_optimizer.state("critic_rmsprop")}
+        return {
+            **self.policy.state("policy"),
+            **self.critic.state("critic"),
+            **self.target_critic.state("target_critic"),
+            **self.policy_optimizer.state("policy_rmsprop"),
+            **self.critic_optimizer.state("critic_rmsprop"),
+        }
 
     def load_state(self, arrays) -> None:
         self.policy.load_state(arrays, "policy")
@@ -288,8 +320,13 @@ def chunks_of(n_states: int, rows_per_state: int) -> list[slice]:
     return [slice(lo, min(n_states, lo + per_chunk)) for lo in range(0, n_states, per_chunk)]
 
 
-def critic_targets(learner: Learner, batch: Triplets, from_replay: np.ndarray,
-                   config: Config, rng: np.random.Generator) -> np.ndarray:
+def critic_targets(
+    learner: Learner,
+    batch: Triplets,
+    from_replay: np.ndarray,
+    config: Config,
+    rng: np.random.Generator,
+) -> np.ndarray:
     """t = E_z[q_nu'(s', pi(s', z))^gamma], halved for replay rows (Eq. 17-18).
 
     The expectation is a mean over `target_samples` noise vectors per next state. At a
@@ -303,7 +340,7 @@ def critic_targets(learner: Learner, batch: Triplets, from_replay: np.ndarray,
 
     def chunk_targets(rows: slice) -> np.ndarray:
         next_states = batch.next_states[rows]  # (C, dim s), each shared by k noise rows
-        z = noise[rows.start * k: rows.stop * k]  # (C*k, dim z)
+        z = noise[rows.start * k : rows.stop * k]  # (C*k, dim z)
         next_actions = learner.act(next_states, z)  # (C*k, dim A)
         _, cache = learner.target_critic.forward((next_states, next_actions))
         log_q = nets.log_sigmoid(cache.logits).reshape(-1, k)  # (C, k): log q'(s', a'_k)
@@ -316,82 +353,134 @@ def critic_targets(learner: Learner, batch: Triplets, from_replay: np.ndarray,
     return t
 
 
-def critic_step(learner: Learner, expert_batch: Triplets, replay_batch: Triplets,
-                config: Config, lr: float, rng: np.random.Generator) -> dict[str, float]:
-    """One RMSProp step on objective (18), then the target update (Appendix B)."""
-    n = len(expert_batch.states)
-    batch = Triplets(*(np.concatenate([e, r]) for e, r in zip(
-        dataclasses.astuple(expert_batch), dataclasses.astuple(replay_batch), strict=True)))
-    from_replay = np.arange(len(batch.states)) >= n
-    t = critic_targets(learner, batch, from_replay, config, rng)[:, None]  # (2n, 1)
+def critic_loss_and_grads(
+    learner: Learner, batch: Triplets, t: np.ndarray, n_expert: int, critic_reg: float
+):
+    """Objective (18) and its gradient w.r.t. every critic parameter, for fixed targets t.
 
+    batch: n_expert expert triplets followed by replay triplets; t: (rows, 1).
+    Returns (loss, grads, critic cache).
+    """
     _, cache = learner.critic.forward((batch.states, batch.actions))
     x = cache.logits  # (2n, 1): p = q_nu(s, a) = sigmoid(x), Eq. (10)
-    # Eq. (18): mean over expert rows of D_JS(P_nu || t) + mean over replay rows of the same.
-    loss = nets.js_divergence(x, t).sum() / n
-    d_x = nets.js_divergence_grad(x, t) / n  # (2n, 1): dD_JS/dx = 1/2 p(1-p)(logit p - logit m)
-    if config.critic_reg > 0:
-        # Submitted version's regulariser: D_JS(q_nu(s,a) || q_nu'(s,a)) on the same rows.
+    # Eq. (18): mean over expert rows of D_JS(P_nu || t) + mean over replay rows of the same
+    # (both halves hold n rows, so one sum / n is both means added).
+    loss = nets.js_divergence(x, t).sum() / n_expert
+    d_x = nets.js_divergence_grad(x, t) / n_expert  # dD_JS/dx = 1/2 p(1-p)(logit p - logit m)
+    if critic_reg > 0:
+        # The submitted version's regulariser: D_JS(q_nu(s,a) || q_nu'(s,a)), same rows.
         _, target_cache = learner.target_critic.forward((batch.states, batch.actions))
         q_target = nets.sigmoid(target_cache.logits)
-        loss += config.critic_reg * nets.js_divergence(x, q_target).mean()
-        d_x += config.critic_reg * nets.js_divergence_grad(x, q_target) / len(x)
+        loss += critic_reg * nets.js_divergence(x, q_target).mean()
+        d_x += critic_reg * nets.js_divergence_grad(x, q_target) / len(x)
     _, grads = learner.critic.backward(d_x, cache, through_head=False)
+    return float(loss), grads, cache
+
+
+def critic_step(
+    learner: Learner,
+    expert_batch: Triplets,
+    replay_batch: Triplets,
+    config: Config,
+    lr: float,
+    rng: np.random.Generator,
+) -> dict[str, float]:
+    """One RMSProp step on objective (18), then the target update (Appendix B)."""
+    n = len(expert_batch.states)
+    batch = Triplets(
+        *(
+            np.concatenate([e, r])
+            for e, r in zip(
+                dataclasses.astuple(expert_batch), dataclasses.astuple(replay_batch), strict=True
+            )
+        )
+    )
+    from_replay = np.arange(len(batch.states)) >= n
+    t = critic_targets(learner, batch, from_replay, config, rng)[:, None]  # (2n, 1)
+    loss, grads, cache = critic_loss_and_grads(learner, batch, t, n, config.critic_reg)
     learner.critic_optimizer.step(learner.critic.params, grads, lr)
     nets.soft_update(learner.target_critic, learner.critic, config.tau)
     q = cache.output[:, 0]
-    return {"critic_loss": float(loss), "q_expert": float(q[:n].mean()),
-            "q_replay": float(q[n:].mean())}
+    return {"critic_loss": loss, "q_expert": float(q[:n].mean()), "q_replay": float(q[n:].mean())}
 
 
 def policy_gradient(learner: Learner, states: np.ndarray, noise: np.ndarray, total_rows: int):
-    """Gradient (6) of -mean log q(s, pi(s, z)) w.r.t. PN's parameters, and diagnostics.
+    """Gradient (6) of -mean log q(s, pi(s, z)) w.r.t. PN's parameters, on one chunk.
 
-    states: (B, dim s); noise: (B*Z, dim z), Z noise vectors per state. Returns
-    (grads, sum of q, count of saturated action components); sums, so that chunks add up.
+    states: (B, dim s); noise: (B*Z, dim z), Z noise vectors per state; total_rows: the
+    rows of the whole step, over which gradient (6) averages. Returns sums over the
+    chunk's rows, so that chunks add up: (grads, loss, sum of q, saturated components).
     """
     actions, policy_cache = learner.policy.forward((states, noise))  # (B*Z, dim A)
     _, critic_cache = learner.critic.forward((states, actions))  # logits (B*Z, 1)
-    # d(-log q)/dx = -(1 - q) (Eq. 10), averaged over every (state, noise) row: gradient (6).
+    log_q = nets.log_sigmoid(critic_cache.logits)  # Q = log q, Eq. (10)
+    # d(-log q)/dx = -(1 - q), averaged over every (state, noise) row: gradient (6).
     d_x = -nets.log_sigmoid_grad(critic_cache.logits) / total_rows
     # The critic's action Jacobian, without its weight gradients: the critic stays fixed.
-    (_, d_actions), _ = learner.critic.backward(d_x, critic_cache, through_head=False,
-                                                param_grads=False)
+    (_, d_actions), _ = learner.critic.backward(
+        d_x, critic_cache, through_head=False, param_grads=False
+    )
     _, grads = learner.policy.backward(d_actions, policy_cache)  # through tanh and PN
     saturated = np.count_nonzero(np.abs(actions) > 0.99)
-    return grads, float(critic_cache.output.sum()), saturated
+    return grads, -float(log_q.sum()) / total_rows, float(critic_cache.output.sum()), saturated
 
 
-def policy_step(learner: Learner, replay_states: np.ndarray, config: Config, lr: float,
-                rng: np.random.Generator) -> dict[str, float]:
-    """One RMSProp step on PN by gradient (6), over `noise_samples` z per state."""
-    z_per_state = config.noise_samples
-    noise = rng.standard_normal((len(replay_states) * z_per_state, learner.noise_dim),
-                                np.float32)
+def policy_loss_and_grads(learner: Learner, states: np.ndarray, noise: np.ndarray):
+    """-E_{s, z}[log q(s, pi(s, z))] and gradient (6), over row chunks on both cores.
+
+    states: (B, dim s); noise: (B*Z, dim z). Returns (loss, grads, stats).
+    """
+    z_per_state = len(noise) // len(states)
 
     def chunk(rows: slice):
-        return policy_gradient(learner, replay_states[rows],
-                               noise[rows.start * z_per_state: rows.stop * z_per_state], len(noise))
+        return policy_gradient(
+            learner,
+            states[rows],
+            noise[rows.start * z_per_state : rows.stop * z_per_state],
+            len(noise),
+        )
 
-    parts = nets.map_chunks(chunk, chunks_of(len(replay_states), z_per_state))
-    grads = {name: sum(p[0][name] for p in parts[1:]) + parts[0][0][name]
-             for name in parts[0][0]}  # the chunks' partial sums, in a fixed order
+    parts = nets.map_chunks(chunk, chunks_of(len(states), z_per_state))
+    grads = {
+        name: sum(p[0][name] for p in parts[1:]) + parts[0][0][name] for name in parts[0][0]
+    }  # the chunks' partial sums, in a fixed order
+    stats = {
+        "q_policy": sum(p[2] for p in parts) / len(noise),
+        "saturation": sum(p[3] for p in parts) / noise.size,
+    }
+    return sum(p[1] for p in parts), grads, stats
+
+
+def policy_step(
+    learner: Learner, replay_states: np.ndarray, config: Config, lr: float, rng: np.random.Generator
+) -> dict[str, float]:
+    """One RMSProp step on PN by gradient (6), over `noise_samples` z per state."""
+    noise = rng.standard_normal(
+        (len(replay_states) * config.noise_samples, learner.noise_dim), np.float32
+    )
+    _, grads, stats = policy_loss_and_grads(learner, replay_states, noise)
     learner.policy_optimizer.step(learner.policy.params, grads, lr)
-    grad_norm = math.sqrt(sum(float((g * g).sum()) for g in grads.values()))
-    return {"q_policy": sum(p[1] for p in parts) / len(noise),
-            "saturation": sum(p[2] for p in parts) / noise.size,
-            "policy_grad_norm": grad_norm}
+    stats["policy_grad_norm"] = math.sqrt(sum(float((g * g).sum()) for g in grads.values()))
+    return stats
 
 
-def update(learner: Learner, expert_buffer: Triplets, replay: ReplayBuffer, config: Config,
-           interactions: int, rng: np.random.Generator) -> dict[str, float]:
+def update(
+    learner: Learner,
+    expert_buffer: Triplets,
+    replay: ReplayBuffer,
+    config: Config,
+    interactions: int,
+    rng: np.random.Generator,
+) -> dict[str, float]:
     """Algorithm 1, lines 11-14: a critic step, the target update and a policy step."""
     critic_lr = nets.linear_decay(config.critic_lr, interactions, config.total_steps)
     policy_lr = nets.linear_decay(config.policy_lr, interactions, config.total_steps)
-    expert_batch = take(expert_buffer, rng.integers(0, len(expert_buffer.states),
-                                                    config.batch_size))
-    stats = critic_step(learner, expert_batch, replay.sample(rng, config.batch_size),
-                        config, critic_lr, rng)
+    expert_batch = take(
+        expert_buffer, rng.integers(0, len(expert_buffer.states), config.batch_size)
+    )
+    stats = critic_step(
+        learner, expert_batch, replay.sample(rng, config.batch_size), config, critic_lr, rng
+    )
     replay_states = replay.sample(rng, config.batch_size).states  # line 13: a fresh batch
     stats.update(policy_step(learner, replay_states, config, policy_lr, rng))
     return stats
@@ -402,8 +491,14 @@ def update(learner: Learner, expert_buffer: Triplets, replay: ReplayBuffer, conf
 # ----------------------------------------------------------------------------------------
 
 
-def run_episode(env, learner: Learner, spaces: Spaces, rng: np.random.Generator,
-                seed: int, replay: ReplayBuffer | None = None) -> tuple[float, int]:
+def run_episode(
+    env,
+    learner: Learner,
+    spaces: Spaces,
+    rng: np.random.Generator,
+    seed: int,
+    replay: ReplayBuffer | None = None,
+) -> tuple[float, int]:
     """One episode with a_t = pi_theta(s_t, z), z ~ N(0, I); stores triplets if `replay`.
 
     Returns (true return, length). Only `terminated` ends the value chain; a time-limit
@@ -437,17 +532,34 @@ def evaluate(env, learner: Learner, spaces: Spaces, config: Config, round_index:
     never shifts the training noise: a run evaluated more often learns the same way.
     """
     rng = np.random.default_rng([config.seed, 1, round_index])
-    return np.array([run_episode(env, learner, spaces, rng, seed=10**6 + config.seed * 1000 + i)[0]
-                     for i in range(config.eval_episodes)])
+    return np.array(
+        [
+            run_episode(env, learner, spaces, rng, seed=10**6 + config.seed * 1000 + i)[0]
+            for i in range(config.eval_episodes)
+        ]
+    )
 
 
 # ----------------------------------------------------------------------------------------
 # The run: directory, progress file, checkpoints, and the main loop.
 # ----------------------------------------------------------------------------------------
 
-PROGRESS_FIELDS = ("interactions", "wall_seconds", "updates", "episodes", "eval_return_mean",
-                   "eval_return_std", "normalized_score", "train_return", "q_expert",
-                   "q_replay", "q_policy", "saturation", "critic_loss", "policy_grad_norm")
+PROGRESS_FIELDS = (
+    "interactions",
+    "wall_seconds",
+    "updates",
+    "episodes",
+    "eval_return_mean",
+    "eval_return_std",
+    "normalized_score",
+    "train_return",
+    "q_expert",
+    "q_replay",
+    "q_policy",
+    "saturation",
+    "critic_loss",
+    "policy_grad_norm",
+)
 
 
 @dataclass
@@ -460,6 +572,8 @@ class Progress:
     eval_rounds: int = 0
     wall_seconds: float = 0.0
     best_eval_return: float = -math.inf
+    recent_returns: list[float] = field(default_factory=list)  # since the last evaluation
+    last_stats: dict[str, float] = field(default_factory=dict)  # of the latest update
     rows: list[dict] = field(default_factory=list)
 
 
@@ -477,21 +591,31 @@ def progress_csv(rows: list[dict]) -> str:
     return out.getvalue()
 
 
-def save_checkpoint(run_dir: Path, learner: Learner, replay: ReplayBuffer,
-                    progress: Progress, rng: np.random.Generator) -> None:
+def save_checkpoint(
+    run_dir: Path,
+    learner: Learner,
+    replay: ReplayBuffer,
+    progress: Progress,
+    rng: np.random.Generator,
+) -> None:
     """Everything needed to continue exactly, in one atomic file; then progress.csv."""
     counters = {k: v for k, v in dataclasses.asdict(progress).items() if k != "rows"}
-    nets.save_arrays(run_dir / "checkpoint.npz", {
-        **learner.state(), **replay.state(),
-        "rng": np.array(json.dumps(rng.bit_generator.state)),
-        "counters": np.array(json.dumps(counters)),
-        "rows": np.array(json.dumps(progress.rows)),
-    })
+    nets.save_arrays(
+        run_dir / "checkpoint.npz",
+        {
+            **learner.state(),
+            **replay.state(),
+            "rng": np.array(json.dumps(rng.bit_generator.state)),
+            "counters": np.array(json.dumps(counters)),
+            "rows": np.array(json.dumps(progress.rows)),
+        },
+    )
     write_text_atomic(run_dir / "progress.csv", progress_csv(progress.rows))
 
 
-def load_checkpoint(run_dir: Path, learner: Learner, replay: ReplayBuffer,
-                    rng: np.random.Generator) -> Progress:
+def load_checkpoint(
+    run_dir: Path, learner: Learner, replay: ReplayBuffer, rng: np.random.Generator
+) -> Progress:
     arrays = nets.load_arrays(run_dir / "checkpoint.npz")
     learner.load_state(arrays)
     replay.load_state(arrays)
@@ -508,12 +632,21 @@ def train(config: Config, resume: bool = False) -> Progress:
     check_config(config)
     run_dir = Path(config.run_dir or f"runs/{config.env}-seed{config.seed}")
     if not resume and (run_dir / "checkpoint.npz").exists():
-        raise UserError(f"{run_dir} already holds a run; continue it with --resume {run_dir}"
-                        " or choose another --run-dir")
+        raise UserError(
+            f"{run_dir} already holds a run; continue it with --resume {run_dir}"
+            " or choose another --run-dir"
+        )
     env, eval_env = expert.make_env(config.env), expert.make_env(config.env)
-    random_return, expert_return = expert.reference_returns(config.env)
-    demo_path = Path(config.demos) if config.demos else expert.ensure_demos(
-        config.env, config.trajectories, config.sampling, config.demo_seed)
+    try:
+        random_return, expert_return = expert.reference_returns(config.env)
+    except UserError as missing:  # any Box task can be learned; it just has no score
+        print(f"note: no normalised score ({missing})", flush=True)
+        random_return, expert_return = math.nan, math.nan
+    demo_path = (
+        Path(config.demos)
+        if config.demos
+        else expert.ensure_demos(config.env, config.trajectories, config.sampling, config.demo_seed)
+    )
     demos = expert.load_demos(demo_path, config.env)
     spaces = make_spaces(env, demos, config)
     expert_buffer = expert_buffer_from(demos, spaces)
@@ -529,43 +662,48 @@ def train(config: Config, resume: bool = False) -> Progress:
         print(f"resumed {run_dir} at {progress.interactions} interactions", flush=True)
     else:
         progress = Progress()
-        write_text_atomic(run_dir / "config.json",
-                          json.dumps(dataclasses.asdict(config), indent=2) + "\n")
+        write_text_atomic(
+            run_dir / "config.json", json.dumps(dataclasses.asdict(config), indent=2) + "\n"
+        )
 
     def normalized(value: float) -> float:
         return (value - random_return) / (expert_return - random_return)
 
     started = time.perf_counter() - progress.wall_seconds
     last_checkpoint = last_log = time.perf_counter()
-    recent_returns: list[float] = []
-    stats: dict[str, float] = {}
     while True:
+        recent_returns, stats = progress.recent_returns, progress.last_stats
         # Evaluate at 0 and every eval_every interactions (at the episode end that crosses it).
         if progress.interactions >= progress.eval_rounds * config.eval_every or (
-                progress.interactions >= config.total_steps):
+            progress.interactions >= config.total_steps
+        ):
             returns = evaluate(eval_env, learner, spaces, config, progress.eval_rounds)
             progress.eval_rounds += 1
             progress.wall_seconds = time.perf_counter() - started
-            row = {"interactions": progress.interactions,
-                   "wall_seconds": round(progress.wall_seconds, 1),
-                   "updates": progress.updates, "episodes": progress.episodes,
-                   "eval_return_mean": round(float(returns.mean()), 2),
-                   "eval_return_std": round(float(returns.std()), 2),
-                   "normalized_score": round(normalized(float(returns.mean())), 4),
-                   "train_return": round(float(np.mean(recent_returns)), 2)
-                   if recent_returns else "",
-                   **{k: round(stats[k], 5) if k in stats else ""
-                      for k in PROGRESS_FIELDS[8:]}}
+            row = {
+                "interactions": progress.interactions,
+                "wall_seconds": round(progress.wall_seconds, 1),
+                "updates": progress.updates,
+                "episodes": progress.episodes,
+                "eval_return_mean": round(float(returns.mean()), 2),
+                "eval_return_std": round(float(returns.std()), 2),
+                "normalized_score": round(normalized(float(returns.mean())), 4),
+                "train_return": round(float(np.mean(recent_returns)), 2) if recent_returns else "",
+                **{k: round(stats[k], 5) if k in stats else "" for k in PROGRESS_FIELDS[8:]},
+            }
             progress.rows.append(row)
             recent_returns.clear()
             if returns.mean() > progress.best_eval_return:
                 progress.best_eval_return = float(returns.mean())
                 nets.save_arrays(run_dir / "policy_best.npz", learner.policy.state("policy"))
-            print(f"eval  {progress.interactions:>8d} steps  return {returns.mean():8.1f}"
-                  f" ± {returns.std():6.1f}  score {row['normalized_score']:6.3f}"
-                  f"  q_E {stats.get('q_expert', math.nan):.3f}"
-                  f"  q_B {stats.get('q_replay', math.nan):.3f}"
-                  f"  sat {stats.get('saturation', math.nan):.2f}", flush=True)
+            print(
+                f"eval  {progress.interactions:>8d} steps  return {returns.mean():8.1f}"
+                f" ± {returns.std():6.1f}  score {row['normalized_score']:6.3f}"
+                f"  q_E {stats.get('q_expert', math.nan):.3f}"
+                f"  q_B {stats.get('q_replay', math.nan):.3f}"
+                f"  sat {stats.get('saturation', math.nan):.2f}",
+                flush=True,
+            )
             save_checkpoint(run_dir, learner, replay, progress, rng)
             last_checkpoint = time.perf_counter()
         if progress.interactions >= config.total_steps:
@@ -579,7 +717,9 @@ def train(config: Config, resume: bool = False) -> Progress:
         # Lines 10-15: as many updates as the episode had steps.
         update_start = time.perf_counter()
         for _ in range(length):
-            stats = update(learner, expert_buffer, replay, config, progress.interactions, rng)
+            stats = progress.last_stats = update(
+                learner, expert_buffer, replay, config, progress.interactions, rng
+            )
             progress.updates += 1
         update_seconds = time.perf_counter() - update_start
         progress.interactions += length
@@ -589,10 +729,13 @@ def train(config: Config, resume: bool = False) -> Progress:
         if now - last_log >= config.log_every:
             rate = progress.interactions / max(progress.wall_seconds, 1e-9)
             eta = (config.total_steps - progress.interactions) / max(rate, 1e-9)
-            print(f"train {progress.interactions:>8d} steps  return {episode_return:8.1f}"
-                  f" ({length:4d} steps)  score {normalized(episode_return):6.3f}"
-                  f"  {length / max(update_seconds, 1e-9):5.1f} updates/s"
-                  f"  ETA {eta / 60:6.1f} min", flush=True)
+            print(
+                f"train {progress.interactions:>8d} steps  return {episode_return:8.1f}"
+                f" ({length:4d} steps)  score {normalized(episode_return):6.3f}"
+                f"  {length / max(update_seconds, 1e-9):5.1f} updates/s"
+                f"  ETA {eta / 60:6.1f} min",
+                flush=True,
+            )
             last_log = now
         if now - last_checkpoint >= config.checkpoint_every:
             save_checkpoint(run_dir, learner, replay, progress, rng)
@@ -623,20 +766,26 @@ def field_docs(cls) -> dict[str, str]:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         description="Off-policy actor-critic imitation learning (Sasaki et al., ICLR 2019).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
     docs = field_docs(Config)
     for f in dataclasses.fields(Config):
         flag, default = "--" + f.name.replace("_", "-"), f.default
         if isinstance(default, bool):
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=default,
-                                help=docs[f.name])
+            parser.add_argument(
+                flag, action=argparse.BooleanOptionalAction, default=default, help=docs[f.name]
+            )
         elif isinstance(default, tuple):
             parser.add_argument(flag, type=int, nargs="+", default=default, help=docs[f.name])
         else:
             parser.add_argument(flag, type=type(default), default=default, help=docs[f.name])
-    parser.add_argument("--resume", metavar="RUN_DIR", default="",
-                        help="continue the run in RUN_DIR from its last checkpoint, with its "
-                             "saved settings (other flags are ignored)")
+    parser.add_argument(
+        "--resume",
+        metavar="RUN_DIR",
+        default="",
+        help="continue the run in RUN_DIR from its last checkpoint, with its "
+        "saved settings (other flags are ignored)",
+    )
     return parser
 
 
@@ -648,16 +797,21 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 saved = json.loads((run_dir / "config.json").read_text())
             except (OSError, ValueError):
-                raise UserError(f"{run_dir} holds no run to resume (config.json missing or "
-                                "unreadable)") from None
+                raise UserError(
+                    f"{run_dir} holds no run to resume (config.json missing or unreadable)"
+                ) from None
             if not (run_dir / "checkpoint.npz").exists():
                 raise UserError(f"{run_dir} holds no checkpoint to resume from")
             saved = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()}
             config = Config(**{**saved, "run_dir": str(run_dir)})
         else:
-            config = Config(**{f.name: (tuple(v) if isinstance(v, list) else v)
-                               for f in dataclasses.fields(Config)
-                               for v in [getattr(args, f.name)]})
+            config = Config(
+                **{
+                    f.name: (tuple(v) if isinstance(v, list) else v)
+                    for f in dataclasses.fields(Config)
+                    for v in [getattr(args, f.name)]
+                }
+            )
         with threadpool_limits(limits=1, user_api="blas"):  # threads come from map_chunks
             train(config, resume=bool(args.resume))
     except UserError as error:

@@ -30,14 +30,19 @@ def make_problem(config: offpac_il.Config, rng: np.random.Generator):
     learner = offpac_il.Learner.create(STATE_DIM, STATE_DIM, ACTION_DIM, config, rng)
     replay = offpac_il.ReplayBuffer(config.replay_size, STATE_DIM, ACTION_DIM)
     for _ in range(config.replay_size):
-        replay.add(rng.standard_normal(STATE_DIM), rng.uniform(-1, 1, ACTION_DIM),
-                   rng.standard_normal(STATE_DIM), False)
+        replay.add(
+            rng.standard_normal(STATE_DIM),
+            rng.uniform(-1, 1, ACTION_DIM),
+            rng.standard_normal(STATE_DIM),
+            False,
+        )
     n_expert = 400
     expert_buffer = offpac_il.Triplets(
         rng.standard_normal((n_expert, STATE_DIM), dtype=np.float32),
         rng.uniform(-1, 1, (n_expert, ACTION_DIM)).astype(np.float32),
         rng.standard_normal((n_expert, STATE_DIM), dtype=np.float32),
-        np.zeros(n_expert, bool))
+        np.zeros(n_expert, bool),
+    )
     return learner, replay, expert_buffer
 
 
@@ -95,8 +100,7 @@ def main() -> None:
     parser.add_argument("--noise-samples", type=int, default=128)
     parser.add_argument("--target-samples", type=int, default=offpac_il.Config.target_samples)
     args = parser.parse_args()
-    config = offpac_il.Config(noise_samples=args.noise_samples,
-                              target_samples=args.target_samples)
+    config = offpac_il.Config(noise_samples=args.noise_samples, target_samples=args.target_samples)
     rng = np.random.default_rng(0)
     learner, replay, expert_buffer = make_problem(config, rng)
 
@@ -112,16 +116,23 @@ def main() -> None:
         tracemalloc.stop()
     floor_s = time_gemm_floor(gemm_shapes(config), rng, args.repeats)
 
-    blas = [f"{i['internal_api']} {i.get('version')} ({i['num_threads']} threads)"
-            for i in threadpool_info() if i["user_api"] == "blas"]
+    blas = [
+        f"{i['internal_api']} {i.get('version')} ({i['num_threads']} threads)"
+        for i in threadpool_info()
+        if i["user_api"] == "blas"
+    ]
     print(f"cores: {os.cpu_count()}  numpy {np.__version__}  BLAS: {', '.join(blas)}")
-    print(f"noise samples {config.noise_samples}, target samples {config.target_samples}, "
-          f"batch {config.batch_size}, critic {config.critic_hidden}")
+    print(
+        f"noise samples {config.noise_samples}, target samples {config.target_samples}, "
+        f"batch {config.batch_size}, critic {config.critic_hidden}"
+    )
     print(f"update:      {update_s * 1e3:7.1f} ms (median of {args.repeats})")
     print(f"GEMM floor:  {floor_s * 1e3:7.1f} ms (the update's matrix products alone)")
     print(f"peak memory: {peak_bytes / 2**20:7.1f} MiB allocated by one update")
-    print(f"update_ms={update_s * 1e3:.1f} gemm_floor_ms={floor_s * 1e3:.1f} "
-          f"floor_fraction={floor_s / update_s:.3f}")
+    print(
+        f"update_ms={update_s * 1e3:.1f} gemm_floor_ms={floor_s * 1e3:.1f} "
+        f"floor_fraction={floor_s / update_s:.3f}"
+    )
 
 
 if __name__ == "__main__":
