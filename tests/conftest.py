@@ -1,0 +1,37 @@
+"""Test configuration: the repository root on sys.path and the Hypothesis profiles.
+
+Profiles:
+- "ci" (the default): derandomised, so every run draws the same examples, and small
+  enough that `python -m pytest` finishes in seconds.
+- "dev": many random examples, for hunting; select it with HYPOTHESIS_PROFILE=dev.
+"""
+
+import os
+import sys
+from pathlib import Path
+
+from hypothesis import HealthCheck, settings
+
+# `python -m pytest` puts the working directory on sys.path, the bare `pytest` script
+# does not; make `import nets` work from either, and from any working directory.
+ROOT = str(Path(__file__).resolve().parent.parent)
+if ROOT not in sys.path:
+    sys.path.insert(0, ROOT)
+
+settings.register_profile(
+    "ci",
+    derandomize=True,
+    database=None,
+    max_examples=30,
+    deadline=None,
+    print_blob=True,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.register_profile(
+    "dev",
+    max_examples=1000,
+    deadline=None,
+    print_blob=True,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
