@@ -19,14 +19,25 @@ Symbols of the ARS paper and where they live:
 
 Policy: ``a = clip(M @ ((s - mu) / sqrt(diag Sigma)), low, high)``, deterministic.
 
-Subcommands (``python expert.py -h``): ``train``, ``demos``, ``import-minari``, ``table``.
-Errors that a user can cause end in one line ``error: ...`` on stderr and exit status 2.
+Files:
+    experts/<env>.npz    a shipped expert: M, mu, std, action bounds, and a JSON ``metadata``
+                         record of the training commands, seed, env steps and wall time
+    experts/table.json   Table 1 for the -v4 tasks (``python expert.py table``)
+    demos/*.npz          demonstrations: ``observations``, ``actions`` (env units),
+                         ``next_observations``, ``terminals`` (is s' terminal), ``env_id``,
+                         ``returns`` (per trajectory), ``seed``, ``sampling``, ``trajectories``
+
+Subcommands (``python expert.py -h``): ``train``, ``demos``, ``check-demos``,
+``import-minari``, ``table``. Errors that a user can cause end in one line ``error: ...`` on
+stderr and exit status 2.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
+import inspect
 import json
 import multiprocessing
 import os
@@ -975,9 +986,6 @@ def add_config_flags(parser: argparse.ArgumentParser) -> None:
 
 def field_docstrings(cls) -> dict[str, str]:
     """The string literal under each dataclass field (the CleanRL/Spinning Up convention)."""
-    import ast
-    import inspect
-
     tree = ast.parse(inspect.getsource(cls))
     body = tree.body[0].body
     docs = {}
