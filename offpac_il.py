@@ -689,7 +689,7 @@ def train(config: Config, resume: bool = False) -> Progress:
                 "eval_return_std": round(float(returns.std()), 2),
                 "normalized_score": round(normalized(float(returns.mean())), 4),
                 "train_return": round(float(np.mean(recent_returns)), 2) if recent_returns else "",
-                **{k: round(stats[k], 5) if k in stats else "" for k in PROGRESS_FIELDS[8:]},
+                **{k: float(f"{stats[k]:.5g}") if k in stats else "" for k in PROGRESS_FIELDS[8:]},
             }
             progress.rows.append(row)
             recent_returns.clear()

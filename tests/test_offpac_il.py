@@ -278,12 +278,12 @@ def interrupted_after(episodes: int):
     """A run_episode that raises, as a kill would, once `episodes` training episodes ran."""
     original, calls = offpac_il.run_episode, {"n": 0}
 
-    def run_episode(*args, replay=None, **kwargs):
-        if len(args) >= 6 or replay is not None:  # training episodes pass the replay
+    def run_episode(*args, **kwargs):
+        if len(args) >= 6 or kwargs.get("replay") is not None:  # training episodes
             calls["n"] += 1
             if calls["n"] > episodes:
                 raise KeyboardInterrupt
-        return original(*args, replay=replay, **kwargs)
+        return original(*args, **kwargs)
 
     return run_episode
 
