@@ -47,24 +47,43 @@ def make_problem(config: offpac_il.Config, rng: np.random.Generator):
 
 
 def gemm_shapes(config: offpac_il.Config) -> list[tuple[int, int, int]]:
-    """(rows, inner, cols) of every matrix product in one update, forward and backward."""
+    """(rows, inner, cols) of every matrix product one update needs.
+
+    The products `offpac_il.update` performs, no more: a state shared by the noise
+    samples of its rows enters the first layer once (shape (states, dim s, hidden));
+    the policy step needs the critic's gradient for the actions only and no input
+    gradient of the policy; the critic step needs no input gradient at all.
+    """
     b, z, k = config.batch_size, config.noise_samples, config.target_samples
-    policy = [STATE_DIM + STATE_DIM, *config.policy_hidden, ACTION_DIM]
-    critic = [STATE_DIM + ACTION_DIM, *config.critic_hidden, 1]
-    layers = lambda sizes: list(zip(sizes[:-1], sizes[1:], strict=True))  # noqa: E731
+    ph, ch = config.policy_hidden, config.critic_hidden
+    s, a = STATE_DIM, ACTION_DIM
+
+    def forward(rows, states, inputs, hidden, out):
+        sizes = [*hidden, out]
+        first = [(states, s, hidden[0]), (rows, inputs, hidden[0])]
+        return first + [(rows, i, o) for i, o in zip(sizes[:-1], sizes[1:], strict=True)]
+
+    def weight_grads(rows, states, inputs, hidden, out):
+        sizes = [*hidden, out]
+        first = [(s, states, hidden[0]), (inputs, rows, hidden[0])]
+        return first + [(i, rows, o) for i, o in zip(sizes[:-1], sizes[1:], strict=True)]
+
+    def hidden_grads(rows, hidden):
+        """d_h @ W.T between hidden layers. (The critic's 1-wide output layer backward is
+        a broadcast, not a product; the policy's is listed where it is used.)"""
+        return [(rows, o, i) for i, o in zip(hidden[:-1], hidden[1:], strict=True)]
+
     shapes = []
-    # Critic step: targets (policy + target critic forward on 2b*k rows), then the critic
-    # forward and backward (input and weight gradients) on 2b rows.
-    for rows, sizes in ((2 * b * k, policy), (2 * b * k, critic)):
-        shapes += [(rows, i, o) for i, o in layers(sizes)]
-    for i, o in layers(critic):
-        shapes += [(2 * b, i, o), (2 * b, o, i), (i, 2 * b, o)]
-    # Policy step on b*z rows: policy forward and full backward; critic forward and
-    # backward to its input only.
-    for i, o in layers(policy):
-        shapes += [(b * z, i, o), (b * z, o, i), (i, b * z, o)]
-    for i, o in layers(critic):
-        shapes += [(b * z, i, o), (b * z, o, i)]
+    # Critic step: targets (policy and target critic forward, 2b next states x k noise),
+    # then the critic's forward and parameter gradients on 2b triplets.
+    shapes += forward(2 * b * k, 2 * b, s, ph, a) + forward(2 * b * k, 2 * b, a, ch, 1)
+    shapes += forward(2 * b, 2 * b, a, ch, 1) + weight_grads(2 * b, 2 * b, a, ch, 1)
+    shapes += hidden_grads(2 * b, ch)
+    # Policy step on b*z rows: policy forward, critic forward, critic backward to the
+    # actions, policy backward with parameter gradients.
+    shapes += forward(b * z, b, s, ph, a) + forward(b * z, b, a, ch, 1)
+    shapes += hidden_grads(b * z, ch) + [(b * z, ch[0], a)]
+    shapes += [(b * z, a, ph[-1])] + hidden_grads(b * z, ph) + weight_grads(b * z, b, s, ph, a)
     return shapes
 
 
