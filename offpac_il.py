@@ -550,6 +550,24 @@ def evaluate(env, learner: Learner, spaces: Spaces, config: Config, round_index:
     )
 
 
+def imitation_diagnostics(learner: Learner, expert_buffer: Triplets, rng) -> dict[str, float]:
+    """How the policy and the critic see the expert's own states, at evaluation time.
+
+    expert_action_error: mean squared distance between pi(s_E, z) and a_E (in [-1, 1]
+    units); q_at_expert_action / q_at_policy_action: mean q(s_E, a_E) and q(s_E, pi(s_E, z)).
+    """
+    states = expert_buffer.states
+    noise = rng.standard_normal((len(states), learner.noise_dim), np.float32)
+    actions = learner.act(states, noise)
+    q_expert, _ = learner.critic.forward((states, expert_buffer.actions))
+    q_policy, _ = learner.critic.forward((states, actions))
+    return {
+        "expert_action_error": float(((actions - expert_buffer.actions) ** 2).mean()),
+        "q_at_expert_action": float(q_expert.mean()),
+        "q_at_policy_action": float(q_policy.mean()),
+    }
+
+
 # ----------------------------------------------------------------------------------------
 # The run: directory, progress file, checkpoints, and the main loop.
 # ----------------------------------------------------------------------------------------
@@ -569,6 +587,9 @@ PROGRESS_FIELDS = (
     "saturation",
     "critic_loss",
     "policy_grad_norm",
+    "expert_action_error",
+    "q_at_expert_action",
+    "q_at_policy_action",
 )
 
 
@@ -688,6 +709,11 @@ def train(config: Config, resume: bool = False) -> Progress:
             progress.interactions >= config.total_steps
         ):
             returns = evaluate(eval_env, learner, spaces, config, progress.eval_rounds)
+            diagnostics = imitation_diagnostics(
+                learner,
+                expert_buffer,
+                np.random.default_rng([config.seed, 2, progress.eval_rounds]),
+            )
             progress.eval_rounds += 1
             progress.wall_seconds = time.perf_counter() - started
             row = {
@@ -699,7 +725,11 @@ def train(config: Config, resume: bool = False) -> Progress:
                 "eval_return_std": round(float(returns.std()), 2),
                 "normalized_score": round(normalized(float(returns.mean())), 4),
                 "train_return": round(float(np.mean(recent_returns)), 2) if recent_returns else "",
-                **{k: float(f"{stats[k]:.5g}") if k in stats else "" for k in PROGRESS_FIELDS[8:]},
+                **{
+                    k: float(f"{value[k]:.5g}") if k in value else ""
+                    for k in PROGRESS_FIELDS[8:]
+                    for value in [{**stats, **diagnostics}]
+                },
             }
             progress.rows.append(row)
             recent_returns.clear()
@@ -711,7 +741,8 @@ def train(config: Config, resume: bool = False) -> Progress:
                 f" ± {returns.std():6.1f}  score {row['normalized_score']:6.3f}"
                 f"  q_E {stats.get('q_expert', math.nan):.3f}"
                 f"  q_B {stats.get('q_replay', math.nan):.3f}"
-                f"  sat {stats.get('saturation', math.nan):.2f}",
+                f"  sat {stats.get('saturation', math.nan):.2f}"
+                f"  |pi(s_E)-a_E|^2 {diagnostics['expert_action_error']:.3f}",
                 flush=True,
             )
             save_checkpoint(run_dir, learner, replay, progress, rng)
