@@ -34,6 +34,33 @@ import numpy as np
 LEAKY_SLOPE = 0.01
 
 
+def _reuse_freed_memory() -> None:
+    """Ask glibc's malloc to keep freed memory for reuse instead of returning it.
+
+    By default, arrays above 128 KB-32 MB are mapped fresh from the kernel and unmapped
+    when freed, so every (1024, 500) float32 temporary of the policy step starts with
+    500 page faults: about 12 000 per update, 10-20 % of its time on this machine. With
+    these two settings the same memory is reused and the faults disappear. Linux/glibc
+    only; elsewhere this does nothing.
+    """
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    if not name:
+        return
+    try:
+        libc = ctypes.CDLL(name)
+        m_trim_threshold, m_mmap_threshold = -1, -3
+        libc.mallopt(m_mmap_threshold, 512 * 2**20)  # allocations below 512 MB: heap
+        libc.mallopt(m_trim_threshold, 1024 * 2**20)  # keep up to 1 GB of freed heap
+    except (OSError, AttributeError):
+        pass
+
+
+_reuse_freed_memory()
+
+
 # ----------------------------------------------------------------------------------------
 # Element-wise pieces: each forward beside its derivative.
 # ----------------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import time
 import tracemalloc
 
@@ -129,6 +130,9 @@ def main() -> None:
     # As in training: BLAS on one thread, parallelism from map_chunks over row chunks.
     with threadpool_limits(limits=1, user_api="blas"):
         update_s = median_seconds(one_update, args.repeats)
+        faults_before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+        one_update()
+        page_faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults_before
         tracemalloc.start()
         one_update()
         peak_bytes = tracemalloc.get_traced_memory()[1]
@@ -148,6 +152,7 @@ def main() -> None:
     print(f"update:      {update_s * 1e3:7.1f} ms (median of {args.repeats})")
     print(f"GEMM floor:  {floor_s * 1e3:7.1f} ms (the update's matrix products alone)")
     print(f"peak memory: {peak_bytes / 2**20:7.1f} MiB allocated by one update")
+    print(f"page faults: {page_faults:7d} in one update (see nets._reuse_freed_memory)")
     print(
         f"update_ms={update_s * 1e3:.1f} gemm_floor_ms={floor_s * 1e3:.1f} "
         f"floor_fraction={floor_s / update_s:.3f}"
