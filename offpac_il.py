@@ -396,12 +396,10 @@ def critic_step(
 ) -> dict[str, float]:
     """One RMSProp step on objective (18), then the target update (Appendix B)."""
     n = len(expert_batch.states)
-    batch = Triplets(
+    batch = Triplets(  # expert rows first, then replay rows: (2n, ...)
         *(
-            np.concatenate([e, r])
-            for e, r in zip(
-                dataclasses.astuple(expert_batch), dataclasses.astuple(replay_batch), strict=True
-            )
+            np.concatenate([getattr(expert_batch, f.name), getattr(replay_batch, f.name)])
+            for f in dataclasses.fields(Triplets)
         )
     )
     from_replay = np.arange(len(batch.states)) >= n

@@ -178,6 +178,13 @@ def test_make_env_refuses_discrete_and_unknown_envs():
     env.close()
 
 
+def test_make_env_is_quiet(capfd, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    expert.make_env("HalfCheetah-v4").close()  # its -v4 asset triggers a MuJoCo deprecation
+    assert capfd.readouterr().err == ""
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+
+
 def run_cli(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
         [sys.executable, str(REPO_DIR / "expert.py"), *args],
