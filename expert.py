@@ -44,7 +44,6 @@ import multiprocessing
 import os
 import shlex
 import sys
-import tempfile
 import time
 import warnings
 import zipfile
@@ -54,6 +53,8 @@ from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+
+import nets
 
 REPO_DIR = Path(__file__).resolve().parent
 EXPERTS_DIR = REPO_DIR / "experts"
@@ -75,39 +76,6 @@ ACTION_BOUND_TOLERANCE = 1e-4
 
 class UserError(Exception):
     """An error the user caused (bad flag, bad file, wrong environment): one line, exit 2."""
-
-
-def atomic_write_npz(path: Path, **arrays) -> None:
-    """Write an .npz so that ``path`` is either the old file or the complete new one.
-
-    The temporary file sits in the same directory, so ``os.replace`` is an atomic rename.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(descriptor, "wb") as file:
-            np.savez(file, **arrays)
-        os.chmod(temporary, 0o644)  # mkstemp makes files private; these are meant to be shared
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Text twin of :func:`atomic_write_npz`."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    descriptor, temporary = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(descriptor, "w") as file:
-            file.write(text)
-        os.chmod(temporary, 0o644)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
 
 
 # ---------------------------------------------------------------------------------------------
@@ -206,15 +174,17 @@ class ExpertPolicy:
     def save(self, path: Path, **metadata) -> None:
         """Write the policy and its provenance (command, seed, steps, wall time, ...)."""
         record = {**self.metadata, **metadata}
-        atomic_write_npz(
+        nets.save_arrays(
             path,
-            env_id=np.array(self.env_id),
-            weights=self.weights,
-            obs_mean=self.obs_mean,
-            obs_std=self.obs_std,
-            action_low=self.action_low,
-            action_high=self.action_high,
-            metadata=np.array(json.dumps(record, sort_keys=True)),
+            dict(
+                env_id=np.array(self.env_id),
+                weights=self.weights,
+                obs_mean=self.obs_mean,
+                obs_std=self.obs_std,
+                action_low=self.action_low,
+                action_high=self.action_high,
+                metadata=np.array(json.dumps(record, sort_keys=True)),
+            ),
         )
 
 
@@ -374,8 +344,11 @@ def make_demos(
                 continue
             states = np.asarray(states)  # (1001, dim S): s_0 .. s_1000
             if sampling == "sparse":
-                keep = np.sort(subsample_rng.choice(TRAJECTORY_STEPS,
-                                                    SPARSE_TRIPLETS_PER_TRAJECTORY, replace=False))
+                keep = np.sort(
+                    subsample_rng.choice(
+                        TRAJECTORY_STEPS, SPARSE_TRIPLETS_PER_TRAJECTORY, replace=False
+                    )
+                )
             else:
                 keep = np.arange(TRAJECTORY_STEPS)
             observations.append(states[:-1][keep])
@@ -406,11 +379,12 @@ def make_demos(
 def write_demos(path: Path, demos: dict) -> None:
     """Validate the triplets against their environment, then write them atomically."""
     validate_demos(demos, str(demos["env_id"]), Path(path))
-    atomic_write_npz(path, **demos)
+    nets.save_arrays(path, demos)
 
 
-def ensure_demos(env_id: str, trajectories: int = 4, sampling: str = "sparse",
-                 seed: int = 0) -> Path:
+def ensure_demos(
+    env_id: str, trajectories: int = 4, sampling: str = "sparse", seed: int = 0
+) -> Path:
     """The default demonstration file, made from the shipped expert the first time."""
     path = default_demos_path(env_id, trajectories, sampling, seed)
     if not path.exists():
@@ -443,22 +417,28 @@ def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
     env.close()
     if len(observations) == 0:
         raise fail("contains zero triplets")
-    for name, array, dim in (("observations", observations, dim_s),
-                             ("next_observations", next_observations, dim_s),
-                             ("actions", actions, dim_a)):
+    for name, array, dim in (
+        ("observations", observations, dim_s),
+        ("next_observations", next_observations, dim_s),
+        ("actions", actions, dim_a),
+    ):
         if array.ndim != 2 or array.shape[1] != dim:
             raise fail(f"{name} have shape {array.shape}; {env_id} needs (n, {dim})")
         if not np.all(np.isfinite(array)):
             raise fail(f"{name} contain non-finite values (NaN or inf)")
     lengths = {len(observations), len(actions), len(next_observations), len(terminals)}
     if len(lengths) != 1 or terminals.ndim != 1:
-        raise fail(f"mismatched lengths: {len(observations)} observations, {len(actions)} "
-                   f"actions, {len(next_observations)} next_observations, "
-                   f"{len(terminals)} terminals")
+        raise fail(
+            f"mismatched lengths: {len(observations)} observations, {len(actions)} "
+            f"actions, {len(next_observations)} next_observations, "
+            f"{len(terminals)} terminals"
+        )
     tolerance = ACTION_BOUND_TOLERANCE * np.maximum(1.0, np.abs(np.stack([low, high])))
     if np.any(actions < low - tolerance[0]) or np.any(actions > high + tolerance[1]):
-        raise fail(f"actions outside the action bounds [{low.min():g}, {high.max():g}] of "
-                   f"{env_id} (largest |a| = {np.abs(actions).max():g})")
+        raise fail(
+            f"actions outside the action bounds [{low.min():g}, {high.max():g}] of "
+            f"{env_id} (largest |a| = {np.abs(actions).max():g})"
+        )
 
     def optional(key, convert):
         return convert(arrays[key]) if key in arrays else None
@@ -491,8 +471,13 @@ def load_demos(path: Path, env_id: str) -> Demos:
     return validate_demos(arrays, env_id, path)
 
 
-def import_minari(dataset_id: str, env_id: str, trajectories: int | None = None,
-                  sampling: str = "dense", seed: int = 0) -> dict:
+def import_minari(
+    dataset_id: str,
+    env_id: str,
+    trajectories: int | None = None,
+    sampling: str = "dense",
+    seed: int = 0,
+) -> dict:
     """Triplets from a Minari dataset already on this machine (never downloads).
 
     Minari stores each episode as observations (T+1, dim S), actions (T, dim A) and
@@ -502,16 +487,19 @@ def import_minari(dataset_id: str, env_id: str, trajectories: int | None = None,
     try:
         import minari
     except ImportError:
-        raise UserError("import-minari needs the minari package: pip install 'minari[hdf5]'") \
-            from None
+        raise UserError(
+            "import-minari needs the minari package: pip install 'minari[hdf5]'"
+        ) from None
     if sampling not in SAMPLING_MODES:
         raise UserError(f"--sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}")
     try:
         dataset = minari.load_dataset(dataset_id, download=False)
     except Exception as error:  # minari raises bare Exceptions/FileNotFoundError/ValueError
-        raise UserError(f"cannot load Minari dataset {dataset_id!r} locally "
-                        f"(MINARI_DATASETS_PATH={os.environ.get('MINARI_DATASETS_PATH', '~')}): "
-                        f"{error}") from None
+        raise UserError(
+            f"cannot load Minari dataset {dataset_id!r} locally "
+            f"(MINARI_DATASETS_PATH={os.environ.get('MINARI_DATASETS_PATH', '~')}): "
+            f"{error}"
+        ) from None
     rng = np.random.default_rng(seed)
     observations, actions, next_observations, terminals, returns = [], [], [], [], []
     for episode in dataset.iterate_episodes():
@@ -554,8 +542,9 @@ def import_minari(dataset_id: str, env_id: str, trajectories: int | None = None,
 # ---------------------------------------------------------------------------------------------
 
 
-def measure_table(episodes: int = 10, seed: int = 0, tasks=PAPER_TASKS,
-                  log: Callable[[str], None] = print) -> dict:
+def measure_table(
+    episodes: int = 10, seed: int = 0, tasks=PAPER_TASKS, log: Callable[[str], None] = print
+) -> dict:
     """dim S, dim A, random and expert returns (mean, std over seeded episodes) per task."""
     table = {}
     for env_id in tasks:
@@ -563,27 +552,38 @@ def measure_table(episodes: int = 10, seed: int = 0, tasks=PAPER_TASKS,
         dim_s, dim_a = env_dimensions(env)
         env.close()
         random_returns = random_policy_returns(env_id, episodes, seed)
-        row = dict(dim_s=dim_s, dim_a=dim_a, episodes=episodes, seed=seed,
-                   random_mean=float(random_returns.mean()),
-                   random_std=float(random_returns.std()),
-                   expert_mean=None, expert_std=None)
+        row = dict(
+            dim_s=dim_s,
+            dim_a=dim_a,
+            episodes=episodes,
+            seed=seed,
+            random_mean=float(random_returns.mean()),
+            random_std=float(random_returns.std()),
+            expert_mean=None,
+            expert_std=None,
+        )
         if default_expert_path(env_id).exists():
             expert_returns = evaluate(env_id, load_expert(env_id).act, episodes, seed)
-            row.update(expert_mean=float(expert_returns.mean()),
-                       expert_std=float(expert_returns.std()))
+            row.update(
+                expert_mean=float(expert_returns.mean()), expert_std=float(expert_returns.std())
+            )
         log(f"{env_id}: random {row['random_mean']:.2f}, expert {row['expert_mean']}")
         table[env_id] = row
     return table
 
 
 def table_markdown(table: dict) -> str:
-    lines = ["| Task | dim S | dim A | Random policy | Expert |",
-             "|---|---:|---:|---:|---:|"]
+    lines = ["| Task | dim S | dim A | Random policy | Expert |", "|---|---:|---:|---:|---:|"]
     for env_id, row in table.items():
-        expert = (f"{row['expert_mean']:.2f} ± {row['expert_std']:.2f}"
-                  if row["expert_mean"] is not None else "missing (not trained yet)")
-        lines.append(f"| {env_id} | {row['dim_s']} | {row['dim_a']} | "
-                     f"{row['random_mean']:.2f} ± {row['random_std']:.2f} | {expert} |")
+        expert = (
+            f"{row['expert_mean']:.2f} ± {row['expert_std']:.2f}"
+            if row["expert_mean"] is not None
+            else "missing (not trained yet)"
+        )
+        lines.append(
+            f"| {env_id} | {row['dim_s']} | {row['dim_a']} | "
+            f"{row['random_mean']:.2f} ± {row['random_std']:.2f} | {expert} |"
+        )
     return "\n".join(lines)
 
 
@@ -597,8 +597,10 @@ def reference_returns(env_id: str, table_path: Path = TABLE_PATH) -> tuple[float
         raise UserError(f"{table_path}: not a valid table ({error})") from None
     row = table.get(env_id)
     if row is None or row.get("expert_mean") is None:
-        raise UserError(f"{table_path} has no expert return for {env_id}; "
-                        f"run `python expert.py table` once its expert exists")
+        raise UserError(
+            f"{table_path} has no expert return for {env_id}; "
+            f"run `python expert.py table` once its expert exists"
+        )
     return float(row["random_mean"]), float(row["expert_mean"])
 
 
@@ -631,16 +633,21 @@ class ARSConfig:
 
 # rl-baselines3-zoo ars.yml, "closest to the original paper" (GUIDE.md Sec. 4), plus budgets.
 ARS_DEFAULTS = {
-    "Hopper-v4": dict(step_size=0.01, directions=8, top=4, noise=0.025, survival_bonus=1.0,
-                      steps=7_000_000),
-    "HalfCheetah-v4": dict(step_size=0.02, directions=32, top=4, noise=0.03, survival_bonus=0.0,
-                           steps=12_000_000),
-    "Walker2d-v4": dict(step_size=0.03, directions=40, top=30, noise=0.025, survival_bonus=1.0,
-                        steps=75_000_000),
-    "Ant-v4": dict(step_size=0.015, directions=60, top=20, noise=0.025, survival_bonus=1.0,
-                   steps=75_000_000),
-    "Humanoid-v4": dict(step_size=0.02, directions=256, top=256, noise=0.0075, survival_bonus=5.0,
-                        steps=25_000_000),
+    "Hopper-v4": dict(
+        step_size=0.01, directions=8, top=4, noise=0.025, survival_bonus=1.0, steps=7_000_000
+    ),
+    "HalfCheetah-v4": dict(
+        step_size=0.02, directions=32, top=4, noise=0.03, survival_bonus=0.0, steps=12_000_000
+    ),
+    "Walker2d-v4": dict(
+        step_size=0.03, directions=40, top=30, noise=0.025, survival_bonus=1.0, steps=75_000_000
+    ),
+    "Ant-v4": dict(
+        step_size=0.015, directions=60, top=20, noise=0.025, survival_bonus=1.0, steps=75_000_000
+    ),
+    "Humanoid-v4": dict(
+        step_size=0.02, directions=256, top=256, noise=0.0075, survival_bonus=5.0, steps=25_000_000
+    ),
 }
 
 
@@ -784,26 +791,28 @@ class ARSState:
 
     def save(self, path: Path) -> None:
         best = self.best_weights is not None
-        atomic_write_npz(
+        nets.save_arrays(
             path,
-            env_id=np.array(self.env_id),
-            seed=np.array(self.seed),
-            config=np.array(json.dumps(dataclasses.asdict(self.config))),
-            weights=self.weights,
-            stat_count=np.array(self.statistics.count),
-            stat_mean=self.statistics.mean,
-            stat_squared_deviations=self.statistics.squared_deviations,
-            rng_state=np.array(json.dumps(self.rng.bit_generator.state)),
-            iteration=np.array(self.iteration),
-            env_steps=np.array(self.env_steps),
-            wall_seconds=np.array(self.wall_seconds),
-            best_return=np.array(self.best_return),
-            best_return_std=np.array(self.best_return_std),
-            best_weights=self.best_weights if best else np.zeros(0),
-            best_obs_mean=self.best_obs_mean if best else np.zeros(0),
-            best_obs_std=self.best_obs_std if best else np.zeros(0),
-            best_env_steps=np.array(self.best_env_steps),
-            commands=np.array(json.dumps(list(self.commands))),
+            dict(
+                env_id=np.array(self.env_id),
+                seed=np.array(self.seed),
+                config=np.array(json.dumps(dataclasses.asdict(self.config))),
+                weights=self.weights,
+                stat_count=np.array(self.statistics.count),
+                stat_mean=self.statistics.mean,
+                stat_squared_deviations=self.statistics.squared_deviations,
+                rng_state=np.array(json.dumps(self.rng.bit_generator.state)),
+                iteration=np.array(self.iteration),
+                env_steps=np.array(self.env_steps),
+                wall_seconds=np.array(self.wall_seconds),
+                best_return=np.array(self.best_return),
+                best_return_std=np.array(self.best_return_std),
+                best_weights=self.best_weights if best else np.zeros(0),
+                best_obs_mean=self.best_obs_mean if best else np.zeros(0),
+                best_obs_std=self.best_obs_std if best else np.zeros(0),
+                best_env_steps=np.array(self.best_env_steps),
+                commands=np.array(json.dumps(list(self.commands))),
+            ),
         )
 
     @classmethod
@@ -854,8 +863,16 @@ def ars_iteration(state: ARSState, runner: RolloutRunner) -> None:
         for sign_index, sign in enumerate((+1.0, -1.0)):
             # Line 5: pi_{j,k,+/-}(s) = (M_j +/- nu delta_k) diag(Sigma_j)^(-1/2) (s - mu_j).
             perturbed = state.weights + sign * config.noise * deltas[k]
-            tasks.append((perturbed, obs_mean, obs_std, int(reset_seeds[k, sign_index]),
-                          config.survival_bonus, True))
+            tasks.append(
+                (
+                    perturbed,
+                    obs_mean,
+                    obs_std,
+                    int(reset_seeds[k, sign_index]),
+                    config.survival_bonus,
+                    True,
+                )
+            )
     results = runner.run(tasks)
     rewards = np.array([result[0] for result in results]).reshape(config.directions, 2)  # (N, 2)
     state.env_steps += sum(result[1] for result in results)
@@ -925,12 +942,20 @@ def train(
             rng=np.random.default_rng(seed),
         )
     state.commands = (*state.commands, command)
-    log(f"ARS V2-t on {env_id}: seed {state.seed}, {workers} workers, "
-        f"{json.dumps(dataclasses.asdict(state.config))}")
+    log(
+        f"ARS V2-t on {env_id}: seed {state.seed}, {workers} workers, "
+        f"{json.dumps(dataclasses.asdict(state.config))}"
+    )
 
     def write_expert() -> None:
-        policy = ExpertPolicy(env_id, state.best_weights, state.best_obs_mean, state.best_obs_std,
-                              action_low, action_high)
+        policy = ExpertPolicy(
+            env_id,
+            state.best_weights,
+            state.best_obs_mean,
+            state.best_obs_std,
+            action_low,
+            action_high,
+        )
         policy.save(
             expert_path,
             trainer="ARS V2-t (Mania, Guy & Recht 2018, Algorithm 2)",
@@ -950,8 +975,10 @@ def train(
         try:
             existing = load_expert(env_id, expert_path)
             state.best_return = float(existing.metadata.get("eval_return_mean", -np.inf))
-            log(f"{expert_path} exists (eval return {state.best_return:.1f}); "
-                f"it is replaced only by a better evaluation")
+            log(
+                f"{expert_path} exists (eval return {state.best_return:.1f}); "
+                f"it is replaced only by a better evaluation"
+            )
         except UserError:
             pass
     started, last_checkpoint = time.monotonic(), time.monotonic()
@@ -971,20 +998,26 @@ def train(
                     state.best_obs_std = state.statistics.std()
                     state.best_env_steps = state.env_steps
                     write_expert()
-                log(f"iteration {state.iteration:5d}  env steps {state.env_steps:10d}  "
+                log(
+                    f"iteration {state.iteration:5d}  env steps {state.env_steps:10d}  "
                     f"wall {state.wall_seconds:8.1f} s  eval return {returns.mean():9.1f} "
-                    f"± {returns.std():6.1f}" + ("  (best, saved)" if improved else ""))
+                    f"± {returns.std():6.1f}" + ("  (best, saved)" if improved else "")
+                )
             state.wall_seconds = wall_at_start + time.monotonic() - started
             if time.monotonic() - last_checkpoint >= checkpoint_seconds:
                 state.save(checkpoint_path)
                 last_checkpoint = time.monotonic()
         state.save(checkpoint_path)
     if state.best_weights is None:
-        log(f"done: no evaluation beat the existing {expert_path} (eval return "
-            f"{state.best_return:.1f}); left it unchanged")
+        log(
+            f"done: no evaluation beat the existing {expert_path} (eval return "
+            f"{state.best_return:.1f}); left it unchanged"
+        )
     else:
-        log(f"done: best eval return {state.best_return:.1f} ± {state.best_return_std:.1f} at "
-            f"{state.best_env_steps} env steps; expert in {expert_path}")
+        log(
+            f"done: best eval return {state.best_return:.1f} ± {state.best_return_std:.1f} at "
+            f"{state.best_env_steps} env steps; expert in {expert_path}"
+        )
     return state
 
 
@@ -1017,8 +1050,12 @@ def field_docstrings(cls) -> dict[str, str]:
     body = tree.body[0].body
     docs = {}
     for previous, node in zip(body, body[1:], strict=False):
-        if (isinstance(previous, ast.AnnAssign) and isinstance(node, ast.Expr)
-                and isinstance(node.value, ast.Constant) and isinstance(node.value.value, str)):
+        if (
+            isinstance(previous, ast.AnnAssign)
+            and isinstance(node, ast.Expr)
+            and isinstance(node.value, ast.Constant)
+            and isinstance(node.value.value, str)
+        ):
             docs[previous.target.id] = node.value.value
     return docs
 
@@ -1031,48 +1068,75 @@ def cli_train(args, argv) -> None:
     overrides = {field.name: getattr(args, field.name) for field in dataclasses.fields(ARSConfig)}
     config = ars_config_for(args.env, **overrides)
     if args.resume:
-        given = {name: value for name, value in overrides.items()
-                 if value is not None and name != "steps"}
+        given = {
+            name: value
+            for name, value in overrides.items()
+            if value is not None and name != "steps"
+        }
         if given:
-            raise UserError(f"--resume continues the checkpoint's settings; only --steps may "
-                            f"change (got {', '.join('--' + n.replace('_', '-') for n in given)})")
-    checkpoint = Path(args.checkpoint) if args.checkpoint else \
-        CHECKPOINTS_DIR / f"{args.env}.ckpt.npz"
+            raise UserError(
+                f"--resume continues the checkpoint's settings; only --steps may "
+                f"change (got {', '.join('--' + n.replace('_', '-') for n in given)})"
+            )
+    checkpoint = (
+        Path(args.checkpoint) if args.checkpoint else CHECKPOINTS_DIR / f"{args.env}.ckpt.npz"
+    )
     out = Path(args.out) if args.out else default_expert_path(args.env)
-    train(args.env, args.seed, config, args.workers, checkpoint, out, resume=args.resume,
-          command=command_line(argv), log=lambda line: print(line, flush=True))
+    train(
+        args.env,
+        args.seed,
+        config,
+        args.workers,
+        checkpoint,
+        out,
+        resume=args.resume,
+        command=command_line(argv),
+        log=lambda line: print(line, flush=True),
+    )
 
 
 def cli_demos(args, argv) -> None:
     expert = load_expert(args.env, Path(args.expert)) if args.expert else None
-    out = Path(args.out) if args.out else \
-        default_demos_path(args.env, args.trajectories, args.sampling, args.seed)
+    out = (
+        Path(args.out)
+        if args.out
+        else default_demos_path(args.env, args.trajectories, args.sampling, args.seed)
+    )
     demos = make_demos(args.env, args.trajectories, args.sampling, args.seed, expert=expert)
     write_demos(out, demos)
-    print(f"{out}: {len(demos['observations'])} triplets from {args.trajectories} "
-          f"{args.sampling} trajectories, expert returns {np.round(demos['returns'], 1).tolist()}"
-          f", dropped episodes (expert fell): {len(demos['dropped_episode_seeds'])}")
+    print(
+        f"{out}: {len(demos['observations'])} triplets from {args.trajectories} "
+        f"{args.sampling} trajectories, expert returns {np.round(demos['returns'], 1).tolist()}"
+        f", dropped episodes (expert fell): {len(demos['dropped_episode_seeds'])}"
+    )
 
 
 def cli_import_minari(args, argv) -> None:
     demos = import_minari(args.dataset_id, args.env, args.trajectories, args.sampling, args.seed)
     write_demos(Path(args.out), demos)
-    print(f"{args.out}: {len(demos['observations'])} triplets from {len(demos['returns'])} "
-          f"episodes of {args.dataset_id}")
+    print(
+        f"{args.out}: {len(demos['observations'])} triplets from {len(demos['returns'])} "
+        f"episodes of {args.dataset_id}"
+    )
 
 
 def cli_check_demos(args, argv) -> None:
     demos = load_demos(Path(args.file), args.env)
-    returns = "unknown" if demos.returns is None else \
-        f"{demos.returns.mean():.1f} ± {demos.returns.std():.1f}"
-    print(f"{args.file}: {len(demos)} valid triplets for {args.env} "
-          f"({demos.sampling or 'unknown'} sampling, {demos.trajectories or '?'} trajectories, "
-          f"expert return {returns}, {int(demos.terminals.sum())} terminal)")
+    returns = (
+        "unknown"
+        if demos.returns is None
+        else f"{demos.returns.mean():.1f} ± {demos.returns.std():.1f}"
+    )
+    print(
+        f"{args.file}: {len(demos)} valid triplets for {args.env} "
+        f"({demos.sampling or 'unknown'} sampling, {demos.trajectories or '?'} trajectories, "
+        f"expert return {returns}, {int(demos.terminals.sum())} terminal)"
+    )
 
 
 def cli_table(args, argv) -> None:
     table = measure_table(args.episodes, args.seed, log=lambda line: print(line, flush=True))
-    atomic_write_text(Path(args.out), json.dumps(table, indent=2) + "\n")
+    nets.write_text(Path(args.out), json.dumps(table, indent=2) + "\n")
     print(f"wrote {args.out}\n")
     print(table_markdown(table))
 
@@ -1084,10 +1148,15 @@ def build_parser() -> argparse.ArgumentParser:
     train_parser = commands.add_parser("train", help="train an ARS V2-t expert")
     train_parser.add_argument("--env", required=True, help="gymnasium id, e.g. Hopper-v4")
     train_parser.add_argument("--seed", type=int, default=0)
-    train_parser.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1,
-                              help="rollout processes (default: CPU count)")
-    train_parser.add_argument("--resume", action="store_true",
-                              help="continue exactly from the checkpoint")
+    train_parser.add_argument(
+        "--workers",
+        type=positive_int,
+        default=os.cpu_count() or 1,
+        help="rollout processes (default: CPU count)",
+    )
+    train_parser.add_argument(
+        "--resume", action="store_true", help="continue exactly from the checkpoint"
+    )
     train_parser.add_argument("--checkpoint", help="default: experts/checkpoints/<env>.ckpt.npz")
     train_parser.add_argument("--out", help="expert file (default: experts/<env>.npz)")
     add_config_flags(train_parser)
@@ -1096,21 +1165,31 @@ def build_parser() -> argparse.ArgumentParser:
     demos_parser = commands.add_parser("demos", help="write expert (s, a, s') demonstrations")
     demos_parser.add_argument("--env", required=True)
     demos_parser.add_argument("--trajectories", type=positive_int, default=4)
-    demos_parser.add_argument("--sampling", choices=SAMPLING_MODES, default="sparse",
-                              help="sparse: 100 random triplets per trajectory; dense: all 1000")
+    demos_parser.add_argument(
+        "--sampling",
+        choices=SAMPLING_MODES,
+        default="sparse",
+        help="sparse: 100 random triplets per trajectory; dense: all 1000",
+    )
     demos_parser.add_argument("--seed", type=int, default=0)
     demos_parser.add_argument("--expert", help="expert file (default: experts/<env>.npz)")
     demos_parser.add_argument(
-        "--out", help="default: demos/<env>-<sampling>-<n>traj-seed<seed>.npz")
+        "--out", help="default: demos/<env>-<sampling>-<n>traj-seed<seed>.npz"
+    )
     demos_parser.set_defaults(handler=cli_demos)
 
     minari_parser = commands.add_parser(
-        "import-minari", help="convert a locally stored Minari dataset to a demonstration file")
+        "import-minari", help="convert a locally stored Minari dataset to a demonstration file"
+    )
     minari_parser.add_argument("dataset_id", help="e.g. mujoco/hopper/expert-v0")
     minari_parser.add_argument("--env", required=True, help="environment the triplets are for")
     minari_parser.add_argument("--out", required=True)
-    minari_parser.add_argument("--trajectories", type=positive_int, default=None,
-                               help="use the first N episodes (default: all)")
+    minari_parser.add_argument(
+        "--trajectories",
+        type=positive_int,
+        default=None,
+        help="use the first N episodes (default: all)",
+    )
     minari_parser.add_argument("--sampling", choices=SAMPLING_MODES, default="dense")
     minari_parser.add_argument("--seed", type=int, default=0)
     minari_parser.set_defaults(handler=cli_import_minari)
@@ -1122,8 +1201,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     table_parser = commands.add_parser("table", help="measure Table 1 for the -v4 tasks")
     table_parser.add_argument("--episodes", type=positive_int, default=10)
-    table_parser.add_argument("--seed", type=int, default=0,
-                              help="episode i is reset with seed + i")
+    table_parser.add_argument(
+        "--seed", type=int, default=0, help="episode i is reset with seed + i"
+    )
     table_parser.add_argument("--out", default=str(TABLE_PATH))
     table_parser.set_defaults(handler=cli_table)
     return parser

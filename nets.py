@@ -426,8 +426,8 @@ def soft_update(target: MLP, source: MLP, tau: float = 1e-3) -> None:
 # ----------------------------------------------------------------------------------------
 
 
-def save_arrays(path, arrays: dict[str, np.ndarray]) -> None:
-    """Write an .npz atomically: to a temporary file beside `path`, then rename.
+def _write_atomically(path, write) -> None:
+    """Call write(file) on a temporary file beside `path`, then rename it to `path`.
 
     A run killed mid-write leaves the previous file intact, never half of a new one.
     """
@@ -436,13 +436,24 @@ def save_arrays(path, arrays: dict[str, np.ndarray]) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
+            write(f)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp makes files private; results are meant to be shared
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def save_arrays(path, arrays: dict[str, np.ndarray]) -> None:
+    """Write an .npz atomically."""
+    _write_atomically(path, lambda f: np.savez(f, **arrays))
+
+
+def write_text(path, text: str) -> None:
+    """Write a text file atomically."""
+    _write_atomically(path, lambda f: f.write(text.encode()))
 
 
 def load_arrays(path) -> dict[str, np.ndarray]:

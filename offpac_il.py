@@ -606,12 +606,6 @@ class Progress:
     rows: list[dict] = field(default_factory=list)
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def progress_csv(rows: list[dict]) -> str:
     out = io.StringIO()
     writer = csv.DictWriter(out, fieldnames=PROGRESS_FIELDS, lineterminator="\n")
@@ -639,7 +633,7 @@ def save_checkpoint(
             "rows": np.array(json.dumps(progress.rows)),
         },
     )
-    write_text_atomic(run_dir / "progress.csv", progress_csv(progress.rows))
+    nets.write_text(run_dir / "progress.csv", progress_csv(progress.rows))
 
 
 def load_checkpoint(
@@ -691,7 +685,7 @@ def train(config: Config, resume: bool = False) -> Progress:
         print(f"resumed {run_dir} at {progress.interactions} interactions", flush=True)
     else:
         progress = Progress()
-        write_text_atomic(
+        nets.write_text(
             run_dir / "config.json", json.dumps(dataclasses.asdict(config), indent=2) + "\n"
         )
 
@@ -789,25 +783,12 @@ def train(config: Config, resume: bool = False) -> Progress:
 # ----------------------------------------------------------------------------------------
 
 
-def field_docs(cls) -> dict[str, str]:
-    """Each field's docstring (the string literal right after it in the class body)."""
-    import ast
-    import inspect
-
-    body = ast.parse(inspect.getsource(cls)).body[0].body
-    docs = {}
-    for node, following in zip(body, body[1:], strict=False):
-        if isinstance(node, ast.AnnAssign) and isinstance(following, ast.Expr):
-            docs[node.target.id] = following.value.value
-    return docs
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         description="Off-policy actor-critic imitation learning (Sasaki et al., ICLR 2019).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    docs = field_docs(Config)
+    docs = expert.field_docstrings(Config)
     for f in dataclasses.fields(Config):
         flag, default = "--" + f.name.replace("_", "-"), f.default
         if isinstance(default, bool):
