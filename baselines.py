@@ -1,0 +1,1135 @@
+"""The paper's baselines, in NumPy: behavioural cloning (BC), GAIL and BC+GAIL.
+
+Sasaki, Yohira & Kawaguchi (ICLR 2019), Sec. 5, compare their method with BC, GAIL
+(Ho & Ermon, "Generative Adversarial Imitation Learning", NeurIPS 2016) and GAIL whose
+policy starts from BC, all from the openai/imitation code. Here:
+
+- BC: a Gaussian policy pi(a|s) = N(mu(s), diag sigma^2), mu an MLP (100-100, identity
+  head) and log sigma a learned state-independent vector (as in openai/imitation),
+  fitted by maximum likelihood to the demonstrations' (s, a) pairs in [-1, 1] action
+  units, with early stopping on a held-out split.
+- GAIL: the same policy, a value MLP and a discriminator MLP D(s, a) (100-100, sigmoid
+  head, logistic loss). The policy step is **PPO with GAE** (Schulman et al. 2017; 2016),
+  as in today's reference libraries (stable-baselines3 + HumanCompatibleAI/imitation),
+  **not TRPO** as in Ho & Ermon and the paper. Reward r(s, a) = -log(1 - D(s, a)), D the
+  probability that (s, a) is the expert's (Ho & Ermon's cost log D_pi with D_pi = 1 - D).
+  It is always positive, so it also pays for staying alive: on tasks that end at a fall
+  (Hopper) it favours long episodes, as Ho & Ermon's and openai/imitation's GAIL did.
+- BC+GAIL: GAIL whose policy (mean network and log sigma) starts from a BC run
+  (`bc-gail --bc-init BC_RUN_DIR`).
+
+What is shared with the learner (offpac_il.py), not copied: environments, demonstrations
+and reference returns (expert.py); action scaling and state standardisation by the
+demonstrations' statistics (`offpac_il.Spaces`, `make_spaces`); whole episodes and
+seeded evaluation (`offpac_il.run_episode`, `offpac_il.evaluate`: both need only an
+object with `act(states, noise)` and `noise_dim`, which `GaussianPolicy` is); the progress
+file (`offpac_il.Progress`, `PROGRESS_FIELDS`, `progress_csv`) and the checkpoint file
+(`offpac_il.save_checkpoint`, `load_checkpoint`); the MLP and the atomic writers (nets.py).
+
+Actions: the Gaussian is unbounded. Its sample a = mu + sigma * noise is what the
+likelihood and the PPO ratio are taken of; the environment gets clip(a, -1, 1) mapped to
+its bounds (as stable-baselines3 does), and the discriminator sees that clipped action,
+because the expert's actions are in [-1, 1] too (`GaussianSpaces`).
+
+The networks use nets.MLP's leaky-ReLU hidden units (one MLP type for the whole project),
+where openai/imitation used tanh.
+
+Run `python baselines.py bc --env Hopper-v4`, then
+`python baselines.py gail --env Hopper-v4` and
+`python baselines.py bc-gail --env Hopper-v4 --bc-init runs/bc-Hopper-v4-seed0`;
+`python baselines.py METHOD --help` lists every setting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import dataclasses
+import io
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+import expert
+import nets
+import offpac_il
+from expert import UserError
+
+LOG_2PI = float(np.log(2.0 * np.pi))
+
+# ----------------------------------------------------------------------------------------
+# Settings. Each method's command line is generated from its dataclass: one flag per
+# field, the field's docstring as its help.
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class RunSettings:
+    """Settings every baseline shares: task, demonstrations, evaluation, run directory."""
+
+    env: str = "Hopper-v4"
+    """Gymnasium environment id (Box observations, bounded Box actions)."""
+    seed: int = 0
+    """Seed of the run's single numpy Generator and of the environment."""
+    demos: str = ""
+    """Demonstration file (.npz); empty: the shipped expert's default demonstrations."""
+    trajectories: int = 4
+    """Expert trajectories in the default demonstrations (Sec. 5.1)."""
+    sampling: str = "sparse"
+    """Default demonstrations: sparse (100 random triplets per trajectory) or dense."""
+    demo_seed: int = 0
+    """Seed of the default demonstrations."""
+    standardize: bool = True
+    """Standardise states by the demonstrations' mean and std (+1e-3), as the learner does."""
+    policy_hidden: tuple[int, ...] = (100, 100)
+    """Hidden layer sizes of the Gaussian policy's mean network."""
+    eval_episodes: int = 5
+    """Episodes per evaluation (stochastic policy, true reward)."""
+    run_dir: str = ""
+    """Run directory; empty: runs/<method>-<env>-seed<seed>."""
+    checkpoint_every: float = 120.0
+    """Seconds between checkpoints (taken between updates); 0: after every iteration."""
+    log_every: float = 10.0
+    """Seconds between training progress lines (evaluations always print)."""
+
+
+@dataclass
+class BCConfig(RunSettings):
+    """Behavioural cloning: maximum likelihood on the demonstrations' (s, a) pairs."""
+
+    total_steps: int = 20_000
+    """Gradient steps at most (BC never interacts with the environment)."""
+    eval_every: int = 250
+    """Gradient steps between evaluations (validation likelihood and episodes)."""
+    lr: float = 1e-3
+    """Adam learning rate."""
+    batch_size: int = 64
+    """Demonstration pairs per gradient step."""
+    validation_fraction: float = 0.3
+    """Fraction of the demonstration pairs held out for early stopping."""
+    patience: int = 20
+    """Stop after this many evaluations without a better validation likelihood."""
+    log_std_init: float = 0.0
+    """Initial log sigma of every action dimension, in [-1, 1] action units."""
+
+
+@dataclass
+class GAILConfig(RunSettings):
+    """GAIL (Ho & Ermon 2016) with PPO + GAE in place of TRPO."""
+
+    total_steps: int = 3_000_000
+    """Interaction budget (environment steps)."""
+    eval_every: int = 50_000
+    """Interactions between evaluations."""
+    bc_init: str = ""
+    """BC+GAIL: a finished BC run directory whose final policy starts the policy."""
+    value_hidden: tuple[int, ...] = (100, 100)
+    """Hidden layer sizes of the value network V(s)."""
+    discriminator_hidden: tuple[int, ...] = (100, 100)
+    """Hidden layer sizes of the discriminator D(s, a)."""
+    log_std_init: float = 0.0
+    """Initial log sigma of every action dimension, in [-1, 1] action units (not BC+GAIL)."""
+    rollout_steps: int = 2048
+    """Interactions per iteration, as whole episodes (at least this many)."""
+    ppo_epochs: int = 10
+    """Passes of PPO over each iteration's rollout."""
+    minibatch_size: int = 64
+    """Rollout steps per PPO minibatch."""
+    policy_lr: float = 3e-4
+    """Adam learning rate of the policy (mean network and log sigma)."""
+    value_lr: float = 3e-4
+    """Adam learning rate of the value network."""
+    clip_range: float = 0.2
+    """PPO's epsilon: the ratio pi/pi_old is clipped to [1 - eps, 1 + eps]."""
+    entropy_coef: float = 0.0
+    """Weight of the policy's entropy bonus."""
+    max_grad_norm: float = 0.5
+    """Each network's gradient is rescaled to at most this global norm."""
+    gamma: float = 0.99
+    """Discount factor of the GAIL reward."""
+    gae_lambda: float = 0.95
+    """GAE's lambda."""
+    discriminator_lr: float = 3e-4
+    """Adam learning rate of the discriminator."""
+    discriminator_steps: int = 10
+    """Discriminator steps per iteration, each on fresh policy and expert minibatches."""
+    discriminator_batch: int = 128
+    """Policy pairs and expert pairs (each) per discriminator step."""
+
+
+SAMPLINGS = offpac_il.SAMPLINGS
+
+
+def check_config(config: RunSettings) -> None:
+    """Refuse settings that cannot work, with one clear message."""
+    if config.sampling not in SAMPLINGS:
+        raise UserError(f"--sampling must be one of {', '.join(SAMPLINGS)}")
+    counts = ["trajectories", "total_steps", "eval_every", "eval_episodes"]
+    counts += [
+        name
+        for name in (
+            "batch_size",
+            "patience",
+            "rollout_steps",
+            "ppo_epochs",
+            "minibatch_size",
+            "discriminator_steps",
+            "discriminator_batch",
+        )
+        if hasattr(config, name)
+    ]
+    for name in counts:
+        if getattr(config, name) < 1:
+            raise UserError(f"--{name.replace('_', '-')} must be at least 1")
+    if any(size < 1 for size in config.policy_hidden):
+        raise UserError("--policy-hidden sizes must be at least 1")
+    if isinstance(config, BCConfig) and not 0.0 < config.validation_fraction < 1.0:
+        raise UserError("--validation-fraction must lie strictly between 0 and 1")
+    if isinstance(config, GAILConfig):
+        if not 0.0 <= config.gamma < 1.0:
+            raise UserError("--gamma must lie in [0, 1)")
+        if not 0.0 <= config.gae_lambda <= 1.0:
+            raise UserError("--gae-lambda must lie in [0, 1]")
+        if config.clip_range <= 0.0:
+            raise UserError("--clip-range must be positive")
+
+
+# ----------------------------------------------------------------------------------------
+# The Gaussian policy and its log-likelihood, each derivative beside its forward.
+# ----------------------------------------------------------------------------------------
+
+
+def gaussian_log_prob(actions: np.ndarray, mean: np.ndarray, log_std: np.ndarray):
+    """log N(a; mu, diag sigma^2) per row, with its derivatives per row and dimension.
+
+        log pi(a|s) = sum_i [ -(a_i - mu_i)^2 / (2 sigma_i^2) - log sigma_i - log(2 pi)/2 ]
+        d log pi / d mu_i       = (a_i - mu_i) / sigma_i^2
+        d log pi / d log sigma_i = (a_i - mu_i)^2 / sigma_i^2 - 1
+
+    actions, mean: (N, dim A); log_std: (dim A,). Returns (log_prob (N,),
+    d_mean (N, dim A), d_log_std (N, dim A)).
+    """
+    std = np.exp(log_std)  # (dim A,)
+    z = (actions - mean) / std  # (N, dim A): the standardised residual
+    log_prob = -0.5 * (z * z).sum(axis=1) - log_std.sum() - 0.5 * LOG_2PI * actions.shape[1]
+    return log_prob, z / std, z * z - 1.0
+
+
+@dataclass
+class GaussianPolicy:
+    """pi(a|s) = N(mu(s), diag exp(log_std)^2): mu an identity-head MLP, log_std a vector.
+
+    `act(states, noise)` and `noise_dim` are what offpac_il.run_episode and
+    offpac_il.evaluate call, so this policy rolls out exactly like the learner's.
+    """
+
+    mean_net: nets.MLP
+    log_std: np.ndarray  # (dim A,)
+
+    @classmethod
+    def create(cls, state_dim, action_dim, hidden, log_std_init, rng, dtype=np.float32):
+        mean_net = nets.MLP.create([state_dim, *hidden, action_dim], "identity", rng, dtype)
+        return cls(mean_net, np.full(action_dim, log_std_init, dtype))
+
+    @property
+    def noise_dim(self) -> int:
+        return len(self.log_std)
+
+    @property
+    def params(self) -> dict[str, np.ndarray]:
+        """Every parameter by name; the arrays themselves, so an optimiser moves them."""
+        return {**self.mean_net.params, "log_std": self.log_std}
+
+    def act(self, states: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """a = mu(s) + sigma * noise, noise ~ N(0, I): a sample of pi(.|s), unclipped."""
+        mean, _ = self.mean_net.forward(states)  # (N, dim A)
+        return mean + np.exp(self.log_std) * noise
+
+    def log_prob(self, states: np.ndarray, actions: np.ndarray):
+        """log pi(a|s) per row (N,), and the cache that `backward` needs."""
+        mean, net_cache = self.mean_net.forward(states)  # (N, dim A)
+        log_prob, d_mean, d_log_std = gaussian_log_prob(actions, mean, self.log_std)
+        return log_prob, (net_cache, d_mean, d_log_std)
+
+    def backward(self, d_log_prob: np.ndarray, cache) -> dict[str, np.ndarray]:
+        """Gradients of a loss L from d_log_prob = dL/d log pi(a_n|s_n), shape (N,)."""
+        net_cache, d_mean, d_log_std = cache
+        weights = np.asarray(d_log_prob, dtype=self.log_std.dtype)[:, None]  # (N, 1)
+        _, grads = self.mean_net.backward(weights * d_mean, net_cache, input_grads=False)
+        grads["log_std"] = (weights * d_log_std).sum(axis=0)  # (dim A,)
+        return grads
+
+    def entropy(self) -> float:
+        """H(pi(.|s)) = sum_i log sigma_i + dim A (1 + log 2 pi)/2; dH/d log sigma_i = 1."""
+        return float(self.log_std.sum() + 0.5 * len(self.log_std) * (1.0 + LOG_2PI))
+
+    def copy(self) -> GaussianPolicy:
+        return GaussianPolicy(self.mean_net.copy(), self.log_std.copy())
+
+    def state(self, prefix: str) -> dict[str, np.ndarray]:
+        return {**self.mean_net.state(prefix), f"{prefix}/log_std": self.log_std}
+
+    def load_state(self, arrays, prefix: str) -> None:
+        self.mean_net.load_state(arrays, prefix)
+        self.log_std[...] = arrays[f"{prefix}/log_std"]
+
+
+class GaussianSpaces(offpac_il.Spaces):
+    """The learner's Spaces, for an unbounded policy: clip(a, -1, 1) before the mapping
+    to the environment's bounds (the likelihood is of the unclipped sample)."""
+
+    def to_env_action(self, action: np.ndarray) -> np.ndarray:
+        return super().to_env_action(np.clip(action, -1.0, 1.0))
+
+
+# ----------------------------------------------------------------------------------------
+# Optimiser. PPO and BC as published use Adam; nets.py has RMSProp only.
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class Adam:
+    """Adam (Kingma & Ba, 2015), with the same interface as nets.RMSProp.
+
+    m <- b1 m + (1 - b1) g;   v <- b2 v + (1 - b2) g^2;   t <- t + 1
+    param <- param - lr * (m / (1 - b1^t)) / (sqrt(v / (1 - b2^t)) + eps)
+    """
+
+    beta1: float = 0.9
+    beta2: float = 0.999
+    eps: float = 1e-8
+    steps: int = 0
+    first: dict[str, np.ndarray] = field(default_factory=dict)
+    second: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def step(self, params: dict[str, np.ndarray], grads: dict[str, np.ndarray], lr: float):
+        self.steps += 1
+        correction1 = 1.0 - self.beta1**self.steps
+        correction2 = 1.0 - self.beta2**self.steps
+        for name, grad in grads.items():
+            m = self.first.setdefault(name, np.zeros_like(params[name]))
+            v = self.second.setdefault(name, np.zeros_like(params[name]))
+            m *= self.beta1
+            m += (1.0 - self.beta1) * grad
+            v *= self.beta2
+            v += (1.0 - self.beta2) * (grad * grad)
+            params[name] -= lr * (m / correction1) / (np.sqrt(v / correction2) + self.eps)
+
+    def state(self, prefix: str) -> dict[str, np.ndarray]:
+        return {
+            f"{prefix}/steps": np.array(self.steps),
+            **{f"{prefix}/m/{name}": value for name, value in self.first.items()},
+            **{f"{prefix}/v/{name}": value for name, value in self.second.items()},
+        }
+
+    def load_state(self, arrays, prefix: str) -> None:
+        self.steps = int(arrays[f"{prefix}/steps"])
+        for moment, store in (("m", self.first), ("v", self.second)):
+            head = f"{prefix}/{moment}/"
+            store.clear()
+            store.update(
+                {k.removeprefix(head): np.array(arrays[k]) for k in arrays if k.startswith(head)}
+            )
+
+
+def clip_global_norm(grads: dict[str, np.ndarray], max_norm: float) -> float:
+    """Rescale `grads` in place to a global L2 norm of at most max_norm; return the norm
+    before rescaling."""
+    norm = float(np.sqrt(sum(float((g * g).sum()) for g in grads.values())))
+    if norm > max_norm:
+        for g in grads.values():
+            g *= max_norm / norm
+    return norm
+
+
+# ----------------------------------------------------------------------------------------
+# BC: maximum likelihood on the demonstrations.
+# ----------------------------------------------------------------------------------------
+
+
+def bc_loss_and_grads(policy: GaussianPolicy, states: np.ndarray, actions: np.ndarray):
+    """L = -mean_n log pi(a_n|s_n) over demonstration pairs, and dL/d(every parameter)."""
+    log_prob, cache = policy.log_prob(states, actions)
+    n = len(states)
+    return -float(log_prob.mean()), policy.backward(np.full(n, -1.0 / n), cache)
+
+
+# ----------------------------------------------------------------------------------------
+# GAIL: discriminator, reward, GAE, PPO.
+# ----------------------------------------------------------------------------------------
+
+
+def discriminator_loss_and_grads(
+    discriminator: nets.MLP,
+    expert_states: np.ndarray,
+    expert_actions: np.ndarray,
+    policy_states: np.ndarray,
+    policy_actions: np.ndarray,
+):
+    """Logistic loss of D(s, a) = sigmoid(x(s, a)), the probability that (s, a) is the
+    expert's (Ho & Ermon 2016, Eq. 17, with D labelling the expert 1):
+
+        L = -mean_E log D(s, a) - mean_pi log(1 - D(s, a))
+          = mean_E softplus(-x) + mean_pi softplus(x)
+        dL/dx = -sigmoid(-x) / N_E on expert rows,  sigmoid(x) / N_pi on policy rows.
+
+    Returns (loss, grads, {"d_expert", "d_policy"}: mean D on each side).
+    """
+    n_expert = len(expert_states)
+    states = np.concatenate([expert_states, policy_states])  # (N_E + N_pi, dim s)
+    actions = np.concatenate([expert_actions, policy_actions])  # (N_E + N_pi, dim A)
+    _, cache = discriminator.forward((states, actions))
+    x = cache.logits  # (N_E + N_pi, 1)
+    x_expert, x_policy = x[:n_expert], x[n_expert:]
+    loss = nets.softplus(-x_expert).mean() + nets.softplus(x_policy).mean()
+    d_x = np.concatenate(
+        [-nets.sigmoid(-x_expert) / n_expert, nets.sigmoid(x_policy) / len(x_policy)]
+    )
+    _, grads = discriminator.backward(d_x, cache, through_head=False, input_grads=False)
+    d = cache.output[:, 0]
+    return (
+        float(loss),
+        grads,
+        {"d_expert": float(d[:n_expert].mean()), "d_policy": float(d[n_expert:].mean())},
+    )
+
+
+def gail_reward(discriminator: nets.MLP, states: np.ndarray, actions: np.ndarray):
+    """r(s, a) = -log(1 - D(s, a)) = softplus(x(s, a)), from the logit (exact when D -> 1)."""
+    _, cache = discriminator.forward((states, actions))
+    return nets.softplus(cache.logits[:, 0])  # (N,)
+
+
+def gae(rewards, values, next_values, terminal, episode_end, gamma: float, lam: float):
+    """Generalised advantage estimates (Schulman et al. 2016, Eq. 16), one pass backwards:
+
+        delta_t = r_t + gamma (1 - terminal_t) V(s_{t+1}) - V(s_t)
+        A_t     = delta_t + gamma lam (1 - end_t) A_{t+1}
+
+    terminal_t: s_{t+1} is terminal (a fall), so nothing follows it; end_t: the episode
+    ends at t, by a fall or by the time limit. A time-limit end still bootstraps from
+    V(s_{t+1}) in delta_t (GUIDE 2), but the sum A_t stops there. All arrays (T,).
+    """
+    advantages = np.zeros(len(rewards), np.float64)
+    following = 0.0  # A_{t+1}
+    for t in reversed(range(len(rewards))):
+        delta = rewards[t] + gamma * (1.0 - terminal[t]) * next_values[t] - values[t]
+        following = delta + gamma * lam * (1.0 - episode_end[t]) * following
+        advantages[t] = following
+    return advantages
+
+
+def ppo_policy_loss_and_grads(
+    policy: GaussianPolicy,
+    states: np.ndarray,
+    actions: np.ndarray,
+    old_log_prob: np.ndarray,
+    advantages: np.ndarray,
+    clip_range: float,
+    entropy_coef: float = 0.0,
+):
+    """PPO's clipped surrogate (Schulman et al. 2017, Eq. 7), as a loss to minimise:
+
+        rho_n = pi(a_n|s_n) / pi_old(a_n|s_n) = exp(log pi - log pi_old)
+        L = -mean_n min(rho_n A_n, clip(rho_n, 1 - eps, 1 + eps) A_n) - c_H H(pi)
+
+    d min / d log pi = rho A where the unclipped term is the smaller (inside the clip
+    range both terms are rho A), and 0 where the clipped term, constant in the
+    parameters, is: A > 0 with rho > 1 + eps, or A < 0 with rho < 1 - eps.
+    Returns (loss, grads, {"clip_fraction", "approx_kl"}).
+    """
+    log_prob, cache = policy.log_prob(states, actions)
+    ratio = np.exp(log_prob - old_log_prob)  # (N,)
+    unclipped = ratio * advantages
+    clipped = np.clip(ratio, 1.0 - clip_range, 1.0 + clip_range) * advantages
+    n = len(states)
+    loss = -float(np.minimum(unclipped, clipped).mean()) - entropy_coef * policy.entropy()
+    d_log_prob = -np.where(unclipped <= clipped, unclipped, 0.0) / n  # (N,)
+    grads = policy.backward(d_log_prob, cache)
+    grads["log_std"] -= entropy_coef  # dH/d log sigma_i = 1
+    stats = {
+        "clip_fraction": float((unclipped > clipped).mean()),
+        # KL(pi_old || pi) estimated as mean((rho - 1) - log rho) >= 0 (as SB3 does).
+        "approx_kl": float(((ratio - 1.0) - (log_prob - old_log_prob)).mean()),
+    }
+    return loss, grads, stats
+
+
+def value_loss_and_grads(value_net: nets.MLP, states: np.ndarray, returns: np.ndarray):
+    """L = 1/2 mean_n (V(s_n) - R_n)^2, R_n = A_n + V_old(s_n) (the GAE return);
+    dL/dV(s_n) = (V(s_n) - R_n) / N."""
+    values, cache = value_net.forward(states)  # (N, 1)
+    error = values[:, 0] - returns  # (N,)
+    _, grads = value_net.backward((error / len(states))[:, None], cache, input_grads=False)
+    return 0.5 * float((error * error).mean()), grads
+
+
+# ----------------------------------------------------------------------------------------
+# Rollouts: offpac_il.run_episode stores each step through `add`, as into the replay.
+# ----------------------------------------------------------------------------------------
+
+
+class Rollout:
+    """One GAIL iteration's steps, whole episodes, in order (s, a unclipped, s', terminal)."""
+
+    def __init__(self):
+        self.steps: list[tuple] = []
+        self.ends: list[int] = []  # index of each episode's last step
+
+    def add(self, state, action, next_state, terminal: bool) -> None:
+        self.steps.append((state, action, next_state, terminal))
+
+    def end_episode(self) -> None:
+        self.ends.append(len(self.steps) - 1)
+
+    def __len__(self) -> int:
+        return len(self.steps)
+
+    def arrays(self):
+        """states (T, dim s), actions (T, dim A), next_states (T, dim s), terminal (T,),
+        episode_end (T,), the last two as floats."""
+        states, actions, next_states, terminal = (
+            np.array(column) for column in zip(*self.steps, strict=True)
+        )
+        episode_end = np.zeros(len(self.steps))
+        episode_end[self.ends] = 1.0
+        return states, actions, next_states, terminal.astype(np.float64), episode_end
+
+
+class NoBuffer:
+    """BC and GAIL carry no replay from one checkpoint to the next; this stands in for
+    the learner's ReplayBuffer in offpac_il.save_checkpoint and load_checkpoint."""
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {}
+
+    def load_state(self, arrays) -> None:
+        pass
+
+
+# ----------------------------------------------------------------------------------------
+# What a checkpoint holds for each method (offpac_il.save_checkpoint calls `state`).
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class BCAgent:
+    policy: GaussianPolicy
+    optimizer: Adam
+    best_policy: GaussianPolicy  # the parameters with the best validation likelihood
+    best_validation_nll: float = math.inf
+    best_update: int = 0
+    evaluations_since_best: int = 0
+    diagnostics: list[dict] = field(default_factory=list)
+
+    def state(self) -> dict[str, np.ndarray]:
+        early_stopping = [self.best_validation_nll, self.best_update, self.evaluations_since_best]
+        return {
+            **self.policy.state("policy"),
+            **self.best_policy.state("best_policy"),
+            **self.optimizer.state("adam"),
+            "early_stopping": np.array(json.dumps(early_stopping)),
+            "diagnostics": np.array(json.dumps(self.diagnostics)),
+        }
+
+    def load_state(self, arrays) -> None:
+        self.policy.load_state(arrays, "policy")
+        self.best_policy.load_state(arrays, "best_policy")
+        self.optimizer.load_state(arrays, "adam")
+        best, update, since = json.loads(str(arrays["early_stopping"]))
+        self.best_validation_nll, self.best_update, self.evaluations_since_best = (
+            best,
+            update,
+            since,
+        )
+        self.diagnostics = json.loads(str(arrays["diagnostics"]))
+
+
+@dataclass
+class GAILAgent:
+    policy: GaussianPolicy
+    value: nets.MLP
+    discriminator: nets.MLP
+    policy_optimizer: Adam = field(default_factory=Adam)
+    value_optimizer: Adam = field(default_factory=Adam)
+    discriminator_optimizer: Adam = field(default_factory=Adam)
+    diagnostics: list[dict] = field(default_factory=list)
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {
+            **self.policy.state("policy"),
+            **self.value.state("value"),
+            **self.discriminator.state("discriminator"),
+            **self.policy_optimizer.state("policy_adam"),
+            **self.value_optimizer.state("value_adam"),
+            **self.discriminator_optimizer.state("discriminator_adam"),
+            "diagnostics": np.array(json.dumps(self.diagnostics)),
+        }
+
+    def load_state(self, arrays) -> None:
+        self.policy.load_state(arrays, "policy")
+        self.value.load_state(arrays, "value")
+        self.discriminator.load_state(arrays, "discriminator")
+        self.policy_optimizer.load_state(arrays, "policy_adam")
+        self.value_optimizer.load_state(arrays, "value_adam")
+        self.discriminator_optimizer.load_state(arrays, "discriminator_adam")
+        self.diagnostics = json.loads(str(arrays["diagnostics"]))
+
+
+# ----------------------------------------------------------------------------------------
+# The run: setup, evaluation rows and checkpoints, shared by both training loops.
+# ----------------------------------------------------------------------------------------
+
+BC_DIAGNOSTICS = ("updates", "validation_nll", "train_nll", "mean_log_std", "best_update")
+GAIL_DIAGNOSTICS = (
+    "interactions",
+    "discriminator_loss",
+    "d_expert",
+    "d_policy",
+    "reward_mean",
+    "value_loss",
+    "approx_kl",
+    "clip_fraction",
+    "entropy",
+    "mean_log_std",
+)
+
+
+def method_of(config: RunSettings) -> str:
+    if isinstance(config, BCConfig):
+        return "bc"
+    return "bc-gail" if config.bc_init else "gail"
+
+
+def demo_path_of(settings: dict) -> Path:
+    """The demonstration file that a run's settings (as in its config.json) name."""
+    if settings["demos"]:
+        return Path(settings["demos"])
+    return expert.default_demos_path(
+        settings["env"], settings["trajectories"], settings["sampling"], settings["demo_seed"]
+    )
+
+
+@dataclass
+class Run:
+    """What both loops need around their updates: environment, demonstrations in the
+    networks' units, reference returns, the progress counters and the run directory."""
+
+    config: RunSettings
+    run_dir: Path
+    env: object
+    spaces: GaussianSpaces
+    expert_states: np.ndarray  # (n, dim s), standardised
+    expert_actions: np.ndarray  # (n, dim A), in [-1, 1]
+    random_return: float
+    expert_return: float
+    progress: offpac_il.Progress = field(default_factory=offpac_il.Progress)
+    rng: np.random.Generator | None = None  # the run's one Generator, set by `start`
+    started: float = 0.0
+
+    @classmethod
+    def open(cls, config: RunSettings, resume: bool) -> Run:
+        """Check everything a user can get wrong before writing anything."""
+        check_config(config)
+        method = method_of(config)
+        run_dir = Path(config.run_dir or f"runs/{method}-{config.env}-seed{config.seed}")
+        if not resume and (run_dir / "checkpoint.npz").exists():
+            raise UserError(
+                f"{run_dir} already holds a run; continue it with --resume {run_dir}"
+                " or choose another --run-dir"
+            )
+        env = expert.make_env(config.env)
+        try:
+            random_return, expert_return = expert.reference_returns(config.env)
+        except UserError as missing:  # any Box task can be learned; it just has no score
+            print(f"note: no normalised score ({missing})", flush=True)
+            random_return, expert_return = math.nan, math.nan
+        if config.demos:
+            demo_path = Path(config.demos)
+        else:
+            demo_path = expert.ensure_demos(
+                config.env, config.trajectories, config.sampling, config.demo_seed
+            )
+        demos = expert.load_demos(demo_path, config.env)
+        # The learner's own state standardisation and action scaling (absorbing: never).
+        learner_spaces = offpac_il.make_spaces(
+            env, demos, offpac_il.Config(standardize=config.standardize, termination="zero")
+        )
+        spaces = GaussianSpaces(
+            **{f.name: getattr(learner_spaces, f.name) for f in dataclasses.fields(learner_spaces)}
+        )
+        return cls(
+            config,
+            run_dir,
+            env,
+            spaces,
+            spaces.state(demos.observations),
+            spaces.from_env_action(demos.actions),
+            random_return,
+            expert_return,
+        )
+
+    def start(self, agent, rng: np.random.Generator, resume: bool) -> None:
+        """Create the run directory and write config.json, or restore the checkpoint."""
+        self.rng = rng
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        if resume:
+            self.progress = offpac_il.load_checkpoint(self.run_dir, agent, NoBuffer(), rng)
+            print(f"resumed {self.run_dir} at {self.progress.updates} updates", flush=True)
+        else:
+            settings = {"method": method_of(self.config), **dataclasses.asdict(self.config)}
+            nets.write_text(self.run_dir / "config.json", json.dumps(settings, indent=2) + "\n")
+        self.started = time.perf_counter() - self.progress.wall_seconds
+
+    def normalized(self, value: float) -> float:
+        return (value - self.random_return) / (self.expert_return - self.random_return)
+
+    def evaluation_due(self, counter: str, total: int) -> bool:
+        """At 0, at the first boundary past each eval_every, and once at the end.
+        counter: "interactions" (GAIL) or "updates" (BC), the progress field counted."""
+        progress, count = self.progress, getattr(self.progress, counter)
+        if count >= progress.eval_rounds * self.config.eval_every:
+            return True
+        # At the end, once: a finished run that is resumed adds no second final row.
+        return count >= total and not (progress.rows and progress.rows[-1][counter] == count)
+
+    def evaluate(self, policy: GaussianPolicy, agent, measured: dict) -> dict:
+        """Evaluate (offpac_il.evaluate: seeded episodes, their own Generator), append a
+        progress row and a diagnostics row, keep the best policy, checkpoint.
+
+        measured: the latest training numbers; those named in PROGRESS_FIELDS go to
+        progress.csv, the method's own (BC_DIAGNOSTICS, GAIL_DIAGNOSTICS) to
+        diagnostics.csv. Returns the progress row.
+        """
+        progress, config = self.progress, self.config
+        returns = offpac_il.evaluate(self.env, policy, self.spaces, config, progress.eval_rounds)
+        # How the policy acts on the expert's own states (as the learner's rows record).
+        rng = np.random.default_rng([config.seed, 2, progress.eval_rounds])
+        noise = rng.standard_normal(self.expert_actions.shape, np.float32)
+        sampled = policy.act(self.expert_states, noise)  # (n, dim A), unclipped
+        executed = np.clip(sampled, -1.0, 1.0)
+        measured = {
+            **measured,
+            "saturation": float(np.mean(np.abs(sampled) >= 1.0)),  # components clipped
+            "expert_action_error": float(((executed - self.expert_actions) ** 2).mean()),
+            "mean_log_std": float(policy.log_std.mean()),
+            "interactions": progress.interactions,
+            "updates": progress.updates,
+        }
+        progress.eval_rounds += 1
+        progress.wall_seconds = time.perf_counter() - self.started
+        recent = progress.recent_returns
+        row = {
+            "interactions": progress.interactions,
+            "wall_seconds": round(progress.wall_seconds, 1),
+            "updates": progress.updates,
+            "episodes": progress.episodes,
+            "eval_return_mean": round(float(returns.mean()), 2),
+            "eval_return_std": round(float(returns.std()), 2),
+            "normalized_score": round(self.normalized(float(returns.mean())), 4),
+            "train_return": round(float(np.mean(recent)), 2) if recent else "",
+            **{
+                name: float(f"{measured[name]:.5g}") if name in measured else ""
+                for name in offpac_il.PROGRESS_FIELDS[8:]
+            },
+        }
+        progress.rows.append(row)
+        recent.clear()
+        diagnostics = {
+            name: (
+                ""
+                if name not in measured
+                else value
+                if isinstance(value, int)
+                else float(f"{value:.5g}")
+            )
+            for name in self.diagnostic_fields
+            for value in [measured.get(name)]
+        }
+        agent.diagnostics.append(diagnostics)
+        if returns.mean() > progress.best_eval_return:
+            progress.best_eval_return = float(returns.mean())
+            nets.save_arrays(self.run_dir / "policy_best.npz", policy.state("policy"))
+        shown = {k: v for k, v in diagnostics.items() if k not in ("interactions", "updates")}
+        print(
+            f"eval  {progress.interactions:>8d} steps  {progress.updates:>7d} updates"
+            f"  return {returns.mean():8.1f} ± {returns.std():6.1f}"
+            f"  score {row['normalized_score']:6.3f}  "
+            + "  ".join(f"{k} {v:.4g}" for k, v in shown.items() if v != ""),
+            flush=True,
+        )
+        self.checkpoint(agent)
+        return row
+
+    @property
+    def diagnostic_fields(self) -> tuple[str, ...]:
+        return BC_DIAGNOSTICS if isinstance(self.config, BCConfig) else GAIL_DIAGNOSTICS
+
+    def checkpoint(self, agent) -> None:
+        """offpac_il's checkpoint (networks, optimisers, Generator, counters, rows, then
+        progress.csv), then diagnostics.csv: the method's own numbers per evaluation."""
+        self.progress.wall_seconds = time.perf_counter() - self.started
+        offpac_il.save_checkpoint(self.run_dir, agent, NoBuffer(), self.progress, self.rng)
+        out = io.StringIO()
+        writer = csv.DictWriter(out, fieldnames=self.diagnostic_fields, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(agent.diagnostics)
+        nets.write_text(self.run_dir / "diagnostics.csv", out.getvalue())
+
+
+# ----------------------------------------------------------------------------------------
+# BC's loop: gradient steps on minibatches of demonstration pairs, evaluated every
+# eval_every steps; stops early once the held-out likelihood stops improving.
+# ----------------------------------------------------------------------------------------
+
+
+def train_bc(config: BCConfig, resume: bool = False) -> offpac_il.Progress:
+    """Maximum likelihood with early stopping. policy_final.npz holds the parameters with
+    the best held-out likelihood (evaluated in the progress row at their update count,
+    `best_update` in diagnostics.csv); policy_best.npz, as for every method, the best
+    evaluated return."""
+    run = Run.open(config, resume)
+    states, actions = run.expert_states, run.expert_actions
+    # The held-out split has its own Generator: fixed by the seed, whatever else happens.
+    order = np.random.default_rng([config.seed, 3]).permutation(len(states))
+    n_held_out = round(config.validation_fraction * len(order))
+    if not 1 <= n_held_out < len(order):
+        raise UserError(
+            f"--validation-fraction {config.validation_fraction} leaves no training or no "
+            f"held-out pairs of {len(order)}"
+        )
+    held_out, training = order[:n_held_out], order[n_held_out:]
+
+    rng = np.random.default_rng(config.seed)  # the run's one Generator (GUIDE 3)
+    policy = GaussianPolicy.create(
+        states.shape[1], actions.shape[1], config.policy_hidden, config.log_std_init, rng
+    )
+    agent = BCAgent(policy, Adam(), policy.copy())
+    run.start(agent, rng, resume)
+    progress, grad_norm = run.progress, math.nan
+    while True:
+        if run.evaluation_due("updates", config.total_steps):
+            validation_nll = -float(policy.log_prob(states[held_out], actions[held_out])[0].mean())
+            if validation_nll < agent.best_validation_nll:
+                agent.best_validation_nll, agent.best_update = validation_nll, progress.updates
+                agent.evaluations_since_best = 0
+                agent.best_policy = policy.copy()
+            else:
+                agent.evaluations_since_best += 1
+            train_nll = -float(policy.log_prob(states[training], actions[training])[0].mean())
+            measured = {
+                "validation_nll": validation_nll,
+                "train_nll": train_nll,
+                "best_update": agent.best_update,
+                "policy_grad_norm": grad_norm,
+            }
+            run.evaluate(policy, agent, {k: v for k, v in measured.items() if np.isfinite(v)})
+        if (
+            progress.updates >= config.total_steps
+            or agent.evaluations_since_best >= config.patience
+        ):
+            break
+        for _ in range(min(config.eval_every, config.total_steps - progress.updates)):
+            batch = training[rng.integers(0, len(training), config.batch_size)]
+            _, grads = bc_loss_and_grads(policy, states[batch], actions[batch])
+            grad_norm = clip_global_norm(grads, math.inf)  # the norm only: BC does not clip
+            agent.optimizer.step(policy.params, grads, config.lr)
+            progress.updates += 1
+
+    nets.save_arrays(run.run_dir / "policy_final.npz", agent.best_policy.state("policy"))
+    print(
+        f"BC done after {progress.updates} updates: best held-out NLL "
+        f"{agent.best_validation_nll:.4f} at {agent.best_update} updates, in policy_final.npz",
+        flush=True,
+    )
+    return progress
+
+
+# ----------------------------------------------------------------------------------------
+# GAIL's loop (Ho & Ermon 2016, Algorithm 1, with PPO in place of TRPO).
+# ----------------------------------------------------------------------------------------
+
+
+def gail_iteration(
+    agent: GAILAgent, rollout: Rollout, run: Run, config: GAILConfig, rng: np.random.Generator
+) -> dict[str, float]:
+    """Discriminator steps, rewards, GAE, then PPO epochs over the rollout.
+
+    Returns the iteration's mean statistics and the number of PPO minibatch updates.
+    """
+    states, actions, next_states, terminal, episode_end = rollout.arrays()
+    executed = np.clip(actions, -1.0, 1.0)  # what the environment got; D sees this too
+    n = len(states)
+
+    # 1. Discriminator (Ho & Ermon, Alg. 1 line 4): expert pairs vs this rollout's pairs.
+    d_stats = []
+    for _ in range(config.discriminator_steps):
+        mine = rng.integers(0, n, config.discriminator_batch)
+        theirs = rng.integers(0, len(run.expert_states), config.discriminator_batch)
+        loss, grads, stats = discriminator_loss_and_grads(
+            agent.discriminator,
+            run.expert_states[theirs],
+            run.expert_actions[theirs],
+            states[mine],
+            executed[mine],
+        )
+        agent.discriminator_optimizer.step(
+            agent.discriminator.params, grads, config.discriminator_lr
+        )
+        d_stats.append({"discriminator_loss": loss, **stats})
+
+    # 2. Rewards from the updated discriminator: r = -log(1 - D(s, a)).
+    rewards = gail_reward(agent.discriminator, states, executed)  # (T,)
+
+    # 3. Advantages A_t by GAE(gamma, lambda); value targets R_t = A_t + V(s_t).
+    values = agent.value.forward(states)[0][:, 0]  # (T,)
+    next_values = agent.value.forward(next_states)[0][:, 0]  # (T,)
+    advantages = gae(
+        rewards, values, next_values, terminal, episode_end, config.gamma, config.gae_lambda
+    )
+    returns = advantages + values
+    old_log_prob, _ = agent.policy.log_prob(states, actions)  # (T,), pi_old: fixed below
+
+    # 4. PPO (Ho & Ermon's line 5, TRPO there): epochs of shuffled minibatches.
+    ppo_stats, updates = [], 0
+    for _ in range(config.ppo_epochs):
+        order = rng.permutation(n)
+        for start in range(0, n, config.minibatch_size):
+            batch = order[start : start + config.minibatch_size]
+            adv = advantages[batch]
+            adv = (adv - adv.mean()) / (adv.std() + 1e-8)  # per-minibatch, as SB3 does
+            loss, grads, stats = ppo_policy_loss_and_grads(
+                agent.policy,
+                states[batch],
+                actions[batch],
+                old_log_prob[batch],
+                adv,
+                config.clip_range,
+                config.entropy_coef,
+            )
+            grad_norm = clip_global_norm(grads, config.max_grad_norm)
+            agent.policy_optimizer.step(agent.policy.params, grads, config.policy_lr)
+            value_loss, value_grads = value_loss_and_grads(
+                agent.value, states[batch], returns[batch]
+            )
+            clip_global_norm(value_grads, config.max_grad_norm)
+            agent.value_optimizer.step(agent.value.params, value_grads, config.value_lr)
+            ppo_stats.append({**stats, "value_loss": value_loss, "policy_grad_norm": grad_norm})
+            updates += 1
+
+    means = {
+        k: float(np.mean([s[k] for s in d_stats + ppo_stats if k in s]))
+        for k in {k for s in d_stats + ppo_stats for k in s}
+    }
+    return {
+        **means,
+        "reward_mean": float(rewards.mean()),
+        "entropy": agent.policy.entropy(),
+        "ppo_updates": updates,
+    }
+
+
+def load_bc_init(config: GAILConfig, policy: GaussianPolicy) -> None:
+    """BC+GAIL: start from a finished BC run's final policy (mean network and log sigma),
+    trained on the same task and demonstrations with the same state standardisation."""
+    bc_dir = Path(config.bc_init)
+    try:
+        saved = json.loads((bc_dir / "config.json").read_text())
+    except (OSError, ValueError):
+        raise UserError(
+            f"--bc-init {bc_dir}: no run there (config.json missing or unreadable)"
+        ) from None
+    if saved.get("method") != "bc":
+        raise UserError(f"--bc-init {bc_dir}: a {saved.get('method')} run, not a BC run")
+    if not (bc_dir / "policy_final.npz").exists():
+        raise UserError(f"--bc-init {bc_dir}: the BC run has not finished (no policy_final.npz)")
+    different = [
+        name for name in ("env", "standardize") if saved.get(name) != getattr(config, name)
+    ]
+    if tuple(saved.get("policy_hidden", ())) != config.policy_hidden:
+        different.append("policy_hidden")
+    this_demos = demo_path_of(dataclasses.asdict(config))
+    if demo_path_of(saved).resolve() != this_demos.resolve():
+        different.append("demonstrations")
+    if different:
+        raise UserError(f"--bc-init {bc_dir}: its {', '.join(different)} differ from this run's")
+    policy.load_state(nets.load_arrays(bc_dir / "policy_final.npz"), "policy")
+
+
+def train_gail(config: GAILConfig, resume: bool = False) -> offpac_il.Progress:
+    """GAIL: iterations of whole-episode rollouts, discriminator steps and PPO epochs."""
+    run = Run.open(config, resume)
+    state_dim, action_dim = run.expert_states.shape[1], run.expert_actions.shape[1]
+    rng = np.random.default_rng(config.seed)  # the run's one Generator (GUIDE 3)
+    run.env.action_space.seed(config.seed)
+    policy = GaussianPolicy.create(
+        state_dim, action_dim, config.policy_hidden, config.log_std_init, rng
+    )
+    if config.bc_init:
+        load_bc_init(config, policy)
+    agent = GAILAgent(
+        policy,
+        nets.MLP.create([state_dim, *config.value_hidden, 1], "identity", rng),
+        nets.MLP.create([state_dim + action_dim, *config.discriminator_hidden, 1], "sigmoid", rng),
+    )
+    run.start(agent, rng, resume)
+    progress = run.progress
+    last_checkpoint = last_log = time.perf_counter()
+    while True:
+        if run.evaluation_due("interactions", config.total_steps):
+            run.evaluate(policy, agent, progress.last_stats)
+            last_checkpoint = time.perf_counter()
+        if progress.interactions >= config.total_steps:
+            break
+
+        # Whole episodes until the rollout holds at least rollout_steps steps: an
+        # iteration never carries an unfinished episode, so a checkpoint between
+        # iterations needs no environment state.
+        rollout = Rollout()
+        while len(rollout) < config.rollout_steps:
+            seed = int(rng.integers(2**31))
+            episode_return, _ = offpac_il.run_episode(
+                run.env, policy, run.spaces, rng, seed, rollout
+            )
+            rollout.end_episode()
+            progress.recent_returns.append(episode_return)
+            progress.episodes += 1
+        progress.interactions += len(rollout)
+        stats = gail_iteration(agent, rollout, run, config, rng)
+        progress.updates += stats.pop("ppo_updates")
+        progress.last_stats = stats
+
+        now = time.perf_counter()
+        progress.wall_seconds = now - run.started
+        if now - last_log >= config.log_every:
+            rate = progress.interactions / max(progress.wall_seconds, 1e-9)
+            eta = (config.total_steps - progress.interactions) / max(rate, 1e-9)
+            print(
+                f"train {progress.interactions:>8d} steps"
+                f"  return {progress.recent_returns[-1]:8.1f}"
+                f"  D(expert) {stats['d_expert']:.3f}  D(policy) {stats['d_policy']:.3f}"
+                f"  reward {stats['reward_mean']:.3f}  kl {stats['approx_kl']:.4f}"
+                f"  {rate:6.0f} steps/s  ETA {eta / 60:6.1f} min",
+                flush=True,
+            )
+            last_log = now
+        if now - last_checkpoint >= config.checkpoint_every:
+            run.checkpoint(agent)
+            last_checkpoint = now
+
+    nets.save_arrays(run.run_dir / "policy_final.npz", policy.state("policy"))
+    return progress
+
+
+# ----------------------------------------------------------------------------------------
+# Command line: `python baselines.py {bc,gail,bc-gail} [flags]`, flags from the dataclasses.
+# ----------------------------------------------------------------------------------------
+
+METHODS = {
+    "bc": (BCConfig, "behavioural cloning: maximum likelihood with early stopping"),
+    "gail": (GAILConfig, "GAIL (Ho & Ermon 2016) with PPO and GAE in place of TRPO"),
+    "bc-gail": (GAILConfig, "GAIL whose policy starts from a BC run (--bc-init)"),
+}
+
+
+def add_dataclass_flags(parser: argparse.ArgumentParser, cls) -> None:
+    """One flag per field, help from its docstring (inherited fields' too), as
+    offpac_il.build_parser does for the learner's Config."""
+    docs = {}
+    for klass in reversed(cls.__mro__):
+        if dataclasses.is_dataclass(klass):
+            docs.update(expert.field_docstrings(klass))
+    for f in dataclasses.fields(cls):
+        flag, default = "--" + f.name.replace("_", "-"), f.default
+        if isinstance(default, bool):
+            parser.add_argument(
+                flag, action=argparse.BooleanOptionalAction, default=default, help=docs[f.name]
+            )
+        elif isinstance(default, tuple):
+            parser.add_argument(flag, type=int, nargs="+", default=default, help=docs[f.name])
+        else:
+            parser.add_argument(flag, type=type(default), default=default, help=docs[f.name])
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        description="Baselines of Sasaki et al. (ICLR 2019), Sec. 5: BC, GAIL, BC+GAIL."
+    )
+    methods = parser.add_subparsers(dest="method", required=True, metavar="METHOD")
+    for name, (cls, summary) in METHODS.items():
+        sub = methods.add_parser(
+            name,
+            help=summary,
+            description=summary,
+            formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        )
+        add_dataclass_flags(sub, cls)
+        sub.add_argument(
+            "--resume",
+            metavar="RUN_DIR",
+            default="",
+            help="continue the run in RUN_DIR from its last checkpoint, with its "
+            "saved settings (other flags are ignored)",
+        )
+    return parser
+
+
+def config_from(args: argparse.Namespace) -> RunSettings:
+    """The method's settings: from the flags, or from RUN_DIR/config.json with --resume."""
+    cls = METHODS[args.method][0]
+    if args.resume:
+        run_dir = Path(args.resume)
+        try:
+            saved = json.loads((run_dir / "config.json").read_text())
+        except (OSError, ValueError):
+            raise UserError(
+                f"{run_dir} holds no run to resume (config.json missing or unreadable)"
+            ) from None
+        if not (run_dir / "checkpoint.npz").exists():
+            raise UserError(f"{run_dir} holds no checkpoint to resume from")
+        method = saved.pop("method", None)
+        if method != args.method:
+            raise UserError(
+                f"{run_dir} is a {method} run; resume it with "
+                f"`python baselines.py {method} --resume {run_dir}`"
+            )
+        saved = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()}
+        return cls(**{**saved, "run_dir": str(run_dir)})
+    config = cls(
+        **{
+            f.name: (tuple(v) if isinstance(v, list) else v)
+            for f in dataclasses.fields(cls)
+            for v in [getattr(args, f.name)]
+        }
+    )
+    if args.method == "bc-gail" and not config.bc_init:
+        raise UserError("bc-gail needs --bc-init BC_RUN_DIR (a finished `baselines.py bc` run)")
+    if args.method == "gail" and config.bc_init:
+        raise UserError("--bc-init makes the run BC+GAIL; use `python baselines.py bc-gail`")
+    return config
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        config = config_from(args)
+        train = train_bc if isinstance(config, BCConfig) else train_gail
+        with threadpool_limits(limits=1, user_api="blas"):  # small matrices: one thread
+            train(config, resume=bool(args.resume))
+    except UserError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted; continue with --resume", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
