@@ -1,8 +1,38 @@
-"""Reading finished runs and drawing the README's figures (used by experiments.ipynb).
+"""The sweep behind experiments.ipynb, and the figures it draws from finished runs.
 
-Every run is a directory written by `offpac_il.py` (or a baseline) with `config.json` and
-`progress.csv`; nothing here trains anything.
+A run is a command line: a script, its arguments and a run directory (`RunSpec`). Every
+training script of the project (`offpac_il.py`, `baselines.py`) writes the same run
+directory: `config.json`, `progress.csv` (one row per evaluation), `checkpoint.npz` while it
+runs and `policy_final.npz` once it has finished. So a sweep is only bookkeeping:
 
+- a run whose `policy_final.npz` exists is finished and skipped;
+- a run with a `checkpoint.npz` but no `policy_final.npz` was interrupted, and continues
+  with `SCRIPT [SUBCOMMAND] --resume RUN_DIR`;
+- any other run starts with `SCRIPT ARGS --run-dir RUN_DIR`.
+
+`sweep(specs, executor)` hands each spec to `run_one` through any
+`concurrent.futures.Executor`: by default a local thread pool whose threads only wait for
+their run's subprocess, or a Dask cluster's `Client(...).get_executor()`. A run that fails
+is reported in the returned statuses (with the tail of its log), never raised mid-sweep.
+
+Relative paths (scripts, run directories, sweep roots) are relative to the repository root,
+the folder of this file, on whichever machine runs them. A Dask cluster therefore needs the
+repository (and its requirements) on every worker, importable (start the workers from it
+with `PYTHONPATH=$PWD dask worker tcp://SCHEDULER:8786 --nthreads 1`: one run per worker
+thread, a learner run keeps two cores busy), and the run directories on a file system
+that the workers and the notebook share.
+
+Figures (matplotlib, Agg), each written as a PNG with the CSV of what it plots beside it;
+seeds are pooled into their mean with a min-max band:
+
+- Figure 2: final normalised score vs number of trajectories, sparse and dense;
+- Figure 3: normalised score vs wall time and vs interactions (one setting);
+- Figure 4: normalised score vs interactions for the ablations.
+
+Command line:
+
+    python experiments.py sweep quick|full [--runs DIR] [--workers N] [--scheduler ADDRESS]
+    python experiments.py figures quick|full [--runs DIR] [--out DIR]
     python experiments.py curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination]
 """
 
@@ -10,11 +40,444 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
+import os
+import subprocess
+import sys
+import time
 from collections import defaultdict
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import FIRST_COMPLETED, Executor, ThreadPoolExecutor, wait
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+ROOT = Path(__file__).resolve().parent
+FINISHED = "policy_final.npz"  # written by a script only when its run has finished
+CHECKPOINT = "checkpoint.npz"  # present while a run can be resumed
+SPEC_FILE = "sweep.json"  # the spec that made the run, written by run_one
+LOG_FILE = "sweep.log"  # the run's stdout and stderr, one block per attempt
+
+# ----------------------------------------------------------------------------------------
+# Methods: how each compared method and ablation is launched.
+# ----------------------------------------------------------------------------------------
+
+# name -> (script, the arguments that select the method). The baselines and the ablation
+# flags are issue 6's; `missing_support` checks each against the script's --help, so a
+# method whose script or flag does not exist yet is reported and skipped, never faked.
+# Keep these in step with baselines.py and offpac_il.py when they land.
+METHODS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "Ours": ("offpac_il.py", ()),
+    "BC": ("baselines.py", ("bc",)),
+    "GAIL": ("baselines.py", ("gail",)),
+    "BC+GAIL": ("baselines.py", ("bc-gail",)),
+    "Ours+OnP": ("offpac_il.py", ("--on-policy",)),
+    "Ours+IRL(D)": ("offpac_il.py", ("--reward-learning", "discriminator")),
+    "Ours+IRL(E)": ("offpac_il.py", ("--reward-learning", "entropy")),
+    "Ours+GP": ("offpac_il.py", ("--policy-type", "gaussian")),
+    "Ours+DP": ("offpac_il.py", ("--policy-type", "deterministic")),
+}
+# A method that starts from another's finished run of the same setting:
+# name -> (that method, the flag that names its run directory).
+STARTS_FROM = {"BC+GAIL": ("BC", "--bc-init")}
+COMPARED = ("Ours", "BC", "GAIL", "BC+GAIL")  # Figures 2 and 3 (Sec. 5.2)
+ABLATIONS = ("Ours+OnP", "Ours+IRL(D)", "Ours+IRL(E)", "Ours+GP", "Ours+DP")  # Figure 4
+
+# Quick mode: configurations that train in a few seconds each on 2 cores. They show that
+# the pipeline works end to end, not how the methods compare.
+QUICK_ARGS: dict[str, tuple[str, ...]] = {
+    "offpac_il.py": (
+        *("--total-steps", "300", "--eval-every", "100", "--eval-episodes", "1"),
+        *("--policy-hidden", "8", "8", "--critic-hidden", "16", "16"),
+        *("--noise-samples", "4", "--target-samples", "2", "--batch-size", "8"),
+    ),
+    "baselines.py": ("--total-steps", "300", "--eval-every", "100", "--eval-episodes", "1"),
+}
+
+
+def resolve(path) -> Path:
+    """A path relative to the repository root (absolute paths stay as they are)."""
+    return ROOT / path
+
+
+# ----------------------------------------------------------------------------------------
+# One run.
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run: `python SCRIPT ARGS --run-dir RUN_DIR`.
+
+    `labels` (method, env, sampling, trajectories, seed, ...) do not change the command;
+    they are saved in the run directory's sweep.json and group runs in the figures.
+    `needs`: run directories that must hold finished runs before this one starts (BC+GAIL
+    starts from a BC run); a sweep that holds them runs them first.
+    """
+
+    script: str
+    args: tuple[str, ...]
+    run_dir: str
+    labels: dict = field(default_factory=dict, compare=False, hash=False)
+    needs: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        object.__setattr__(self, "args", tuple(str(a) for a in self.args))
+        object.__setattr__(self, "needs", tuple(str(n) for n in self.needs))
+        object.__setattr__(self, "script", str(self.script))
+        object.__setattr__(self, "run_dir", str(self.run_dir))
+
+    @property
+    def subcommand(self) -> tuple[str, ...]:
+        """The leading positional arguments (`bc` in `baselines.py bc --seed 0`)."""
+        leading = []
+        for arg in self.args:
+            if arg.startswith("-"):
+                break
+            leading.append(arg)
+        return tuple(leading)
+
+    def command(self, resume: bool = False) -> list[str]:
+        if resume:  # the run's saved config.json holds every other setting
+            return [sys.executable, self.script, *self.subcommand, "--resume", self.run_dir]
+        return [sys.executable, self.script, *self.args, "--run-dir", self.run_dir]
+
+
+@dataclass
+class RunResult:
+    """What happened to one spec in a sweep.
+
+    status: "skipped" (finished before), "completed" (ran from the start to the end now),
+    "resumed" (continued from a checkpoint to the end now) or "failed" (message says why).
+    """
+
+    spec: RunSpec
+    status: str
+    returncode: int | None = None
+    seconds: float = 0.0
+    message: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.status != "failed"
+
+    def line(self) -> str:
+        text = f"{self.status:9s} {self.seconds:7.1f} s  {self.spec.run_dir}"
+        return f"{text}\n          {self.message}" if self.message else text
+
+
+def run_one(spec: RunSpec) -> RunResult:
+    """Run, resume or skip one spec; never raises for a failed run.
+
+    Module-level and free of closures so that any executor can pickle it (Dask sends it
+    by reference: the workers import this module).
+    """
+    started = time.perf_counter()
+    run_dir, script = resolve(spec.run_dir), resolve(spec.script)
+
+    def result(status: str, returncode=None, message="") -> RunResult:
+        return RunResult(spec, status, returncode, time.perf_counter() - started, message)
+
+    if (run_dir / FINISHED).exists():
+        return result("skipped")
+    if not script.is_file():
+        return result("failed", message=f"no script {script}")
+    unfinished = [need for need in spec.needs if not (resolve(need) / FINISHED).exists()]
+    if unfinished:
+        return result("failed", message=f"needs the finished run {unfinished[0]}")
+    resume = (run_dir / CHECKPOINT).exists()
+    command = spec.command(resume)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / SPEC_FILE).write_text(
+            json.dumps({**asdict(spec), "command": command[1:]}, indent=2) + "\n"
+        )
+        with open(run_dir / LOG_FILE, "a") as log:
+            log.write(f"\n# {time.strftime('%Y-%m-%d %H:%M:%S')} {' '.join(command[1:])}\n")
+            log.flush()
+            start_of_attempt = log.tell()
+            returncode = subprocess.call(
+                command, cwd=ROOT, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT
+            )
+    except OSError as error:
+        return result("failed", message=f"could not launch: {error}")
+    if returncode != 0:
+        return result(
+            "failed", returncode, f"exit {returncode}: {_log_tail(run_dir, start_of_attempt)}"
+        )
+    if not (run_dir / FINISHED).exists():
+        return result("failed", returncode, f"exit 0 but no {FINISHED} in {run_dir}")
+    return result("resumed" if resume else "completed", returncode)
+
+
+def _log_tail(run_dir: Path, offset: int, lines: int = 3) -> str:
+    with open(run_dir / LOG_FILE, errors="replace") as log:
+        log.seek(offset)
+        text = [line.strip() for line in log.read().splitlines() if line.strip()]
+    return " | ".join(text[-lines:]) or "no output"
+
+
+# ----------------------------------------------------------------------------------------
+# The sweep.
+# ----------------------------------------------------------------------------------------
+
+
+def default_workers() -> int:
+    """Runs at a time in the default pool: one per two cores (a learner run keeps two
+    cores busy with its own row chunks, nets.map_chunks)."""
+    return max(1, (os.cpu_count() or 1) // 2)
+
+
+def sweep(
+    specs: Iterable[RunSpec],
+    executor: Executor | None = None,
+    *,
+    workers: int | None = None,
+    echo: Callable[[str], None] | None = print,
+) -> list[RunResult]:
+    """Run every spec through `executor`; results in the order of `specs`.
+
+    executor: any concurrent.futures.Executor, e.g. `distributed.Client(...).get_executor()`.
+    None: a ThreadPoolExecutor of `workers` threads (default `default_workers()`), shut
+    down at the end. Threads rather than processes because each run is a subprocess
+    anyway: a thread only waits for it, nothing needs pickling, and nothing forks a
+    process that holds threads (a Jupyter kernel does). Ctrl-C (or a kernel interrupt)
+    reaches the runs through the process group: they stop, and the next sweep resumes
+    them from their last checkpoint.
+
+    A spec starts once the specs it needs (RunSpec.needs) in the same sweep have ended;
+    if one of them failed, it fails without starting.
+
+    echo: called with one line per run as it ends (None: quiet).
+    """
+    specs = list(specs)
+    index: dict[Path, int] = {}
+    for i, spec in enumerate(specs):
+        run_dir = resolve(spec.run_dir).resolve()
+        if run_dir in index:
+            raise ValueError(f"two specs share the run directory {spec.run_dir}")
+        index[run_dir] = i
+    # The specs each spec waits for (needs outside the sweep are run_one's to check).
+    waits_for = {
+        i: {index[d] for d in (resolve(n).resolve() for n in spec.needs) if d in index}
+        for i, spec in enumerate(specs)
+    }
+    own_executor = executor is None
+    if own_executor:
+        executor = ThreadPoolExecutor(max_workers=workers or default_workers())
+    results: list[RunResult | None] = [None] * len(specs)
+    running: dict = {}
+
+    def record(i: int, result: RunResult) -> None:
+        results[i] = result
+        if echo is not None:
+            echo(result.line())
+
+    def start_ready() -> None:
+        for i, deps in list(waits_for.items()):
+            if any(results[d] is None for d in deps):
+                continue
+            del waits_for[i]
+            failed = [specs[d].run_dir for d in deps if not results[d].ok]
+            if failed:
+                record(i, RunResult(specs[i], "failed", message=f"needs {failed[0]}, which failed"))
+            else:
+                running[executor.submit(run_one, specs[i])] = i
+
+    try:
+        start_ready()
+        while running:
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in done:
+                i = running.pop(future)
+                try:
+                    record(i, future.result())
+                except Exception as error:  # the executor itself failed (e.g. a lost worker)
+                    record(
+                        i, RunResult(specs[i], "failed", message=f"{type(error).__name__}: {error}")
+                    )
+            start_ready()
+        for i in waits_for:  # only a cycle of needs leaves specs waiting
+            record(i, RunResult(specs[i], "failed", message="its needs form a cycle"))
+    finally:
+        if own_executor:
+            executor.shutdown(wait=True, cancel_futures=True)
+    return results
+
+
+def status_counts(results: Iterable[RunResult]) -> dict[str, int]:
+    counts: dict[str, int] = defaultdict(int)
+    for r in results:
+        counts[r.status] += 1
+    return dict(counts)
+
+
+# ----------------------------------------------------------------------------------------
+# Building specs.
+# ----------------------------------------------------------------------------------------
+
+
+def run_dir_of(root, method: str, env: str, sampling: str, trajectories: int, seed: int) -> Path:
+    """The layout of a sweep: ROOT/ENV/METHOD/SAMPLING-Ntraj/seedS."""
+    return Path(root) / env / _slug(method) / f"{sampling}-{trajectories}traj" / f"seed{seed}"
+
+
+def method_spec(
+    method: str,
+    root,
+    *,
+    env: str,
+    seed: int,
+    trajectories: int,
+    sampling: str,
+    extra_args: Sequence[str] = (),
+) -> RunSpec:
+    """The spec of one method (a name in METHODS) on one setting, in the layout of
+    `run_dir_of`. A method of STARTS_FROM names (and needs) the run it starts from: the
+    run of its base method with the same setting under the same root."""
+    script, selector = METHODS[method]
+    setting = dict(env=env, sampling=sampling, trajectories=trajectories, seed=seed)
+    args = [
+        *selector,
+        *("--env", env, "--seed", seed, "--trajectories", trajectories, "--sampling", sampling),
+        *extra_args,
+    ]
+    needs = []
+    if method in STARTS_FROM:
+        base, flag = STARTS_FROM[method]
+        needs.append(run_dir_of(root, base, **setting))
+        args += [flag, needs[-1]]
+    return RunSpec(
+        script, args, run_dir_of(root, method, **setting), dict(method=method, **setting), needs
+    )
+
+
+def grid(
+    root,
+    methods: Sequence[str],
+    *,
+    envs: Sequence[str] = ("Hopper-v4",),
+    seeds: Sequence[int] = (0,),
+    trajectories: Sequence[int] = (4,),
+    samplings: Sequence[str] = ("sparse",),
+    extra_args: dict[str, Sequence[str]] | None = None,
+) -> list[RunSpec]:
+    """Every combination of methods x envs x samplings x trajectories x seeds, in the
+    layout of `run_dir_of`. extra_args maps a script name (e.g. "offpac_il.py") to
+    arguments added to each of its runs."""
+    extra_args = extra_args or {}
+    return [
+        method_spec(
+            method, root, env=env, seed=seed, trajectories=n, sampling=sampling,
+            extra_args=extra_args.get(METHODS[method][0], ()),
+        )
+        for method in methods
+        for env in envs
+        for sampling in samplings
+        for n in trajectories
+        for seed in seeds
+    ]  # fmt: skip
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() else "-" for c in name).strip("-").lower()
+
+
+def envs_with_experts(table_path=ROOT / "experts" / "table.json") -> list[str]:
+    """Tasks of Table 1 whose expert exists (the only ones with a normalised score)."""
+    table = json.loads(Path(table_path).read_text())
+    return [env for env, row in table.items() if row.get("expert_mean") is not None]
+
+
+def plan(quick: bool, root) -> list[RunSpec]:
+    """The runs behind Figures 2-4.
+
+    quick: Hopper-v4, seeds 0 and 1, 1 and 4 trajectories, sparse and dense, every method
+    at QUICK_ARGS (seconds per run), and the ablations at 4 sparse trajectories.
+    full: the paper's settings (each script's defaults): every task with an expert, 3
+    seeds (Sec. 5.1: "three experiments on each task"), 1, 4, 7 and 10 trajectories (the
+    paper does not list its counts), sparse and dense; the ablations at 4 sparse
+    trajectories on Ant-v4 (the paper's Figure 4) once its expert exists, else Hopper-v4.
+    Figures 3 and 4 reuse the Figure 2 runs of their setting (Ours at 4 sparse
+    trajectories): no run is made twice.
+    """
+    envs = ["Hopper-v4"] if quick else envs_with_experts()
+    seeds = (0, 1) if quick else (0, 1, 2)
+    counts = (1, 4) if quick else (1, 4, 7, 10)
+    extra = QUICK_ARGS if quick else {}
+    ablation_env = "Ant-v4" if "Ant-v4" in envs else "Hopper-v4"
+    return grid(
+        root, COMPARED, envs=envs, seeds=seeds, trajectories=counts,
+        samplings=("sparse", "dense"), extra_args=extra,
+    ) + grid(
+        root, ABLATIONS, envs=[ablation_env], seeds=seeds, trajectories=(4,),
+        samplings=("sparse",), extra_args=extra,
+    )  # fmt: skip
+
+
+# ----------------------------------------------------------------------------------------
+# What exists yet.
+# ----------------------------------------------------------------------------------------
+
+
+def _help_text(script: str, subcommand: tuple[str, ...]) -> str | None:
+    """`python SCRIPT [SUBCOMMAND] --help`, or None when that fails (not cached: scripts
+    change while a notebook's kernel lives)."""
+    path = resolve(script)
+    if not path.is_file():
+        return None
+    done = subprocess.run(
+        [sys.executable, str(path), *subcommand, "--help"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        stdin=subprocess.DEVNULL,
+    )
+    return done.stdout if done.returncode == 0 else None
+
+
+def missing_support(spec: RunSpec, _helps: dict | None = None) -> str | None:
+    """Why `spec` cannot run with the scripts as they are (None: it can).
+
+    Checks that the script exists, that `SCRIPT [SUBCOMMAND] --help` works and that it
+    lists every --flag of the spec; not that the flags' values are accepted.
+    """
+    if not resolve(spec.script).is_file():
+        return f"{spec.script} does not exist yet"
+    helps = {} if _helps is None else _helps
+    key = (spec.script, spec.subcommand)
+    if key not in helps:
+        helps[key] = _help_text(*key)
+    help_text = helps[key]
+    shown = " ".join([spec.script, *spec.subcommand])
+    if help_text is None:
+        return f"`{shown} --help` fails"
+    if not help_text.strip():
+        return f"`{shown} --help` lists no options yet"
+    flags = {arg.split("=")[0] for arg in spec.args if arg.startswith("--")}
+    unknown = sorted(flag for flag in flags if flag not in help_text.split())
+    if unknown:
+        return f"{spec.script} has no {', '.join(unknown)} yet"
+    return None
+
+
+def split_runnable(specs: Iterable[RunSpec]) -> tuple[list[RunSpec], dict[str, list[str]]]:
+    """(specs that can run, {method: reason} for the methods that cannot)."""
+    runnable, skipped, helps = [], {}, {}
+    for spec in specs:
+        reason = missing_support(spec, helps)
+        if reason is None:
+            runnable.append(spec)
+        else:
+            skipped.setdefault(spec.labels.get("method", spec.script), reason)
+    return runnable, skipped
+
+
+# ----------------------------------------------------------------------------------------
+# Reading runs.
+# ----------------------------------------------------------------------------------------
 
 
 def read_progress(run_dir) -> dict[str, np.ndarray]:
@@ -33,14 +496,100 @@ def read_config(run_dir) -> dict:
     return json.loads((Path(run_dir) / "config.json").read_text())
 
 
-def group_runs(run_dirs, label_by: list[str]) -> dict[str, list[Path]]:
-    """Runs grouped by the values of the config keys in `label_by` (seeds pooled)."""
-    groups: dict[str, list[Path]] = defaultdict(list)
-    for run_dir in map(Path, run_dirs):
+@dataclass
+class Run:
+    """A run directory as the figures see it."""
+
+    run_dir: Path
+    labels: dict  # method, env, sampling, trajectories, seed
+    progress: dict[str, np.ndarray]
+    finished: bool
+
+
+LABEL_KEYS = ("method", "env", "sampling", "trajectories", "seed")
+
+
+def load_run(run_dir) -> Run:
+    """Labels from sweep.json, else from config.json (a hand-made run of Ours)."""
+    run_dir = Path(run_dir)
+    labels = {"method": "Ours"}
+    if (run_dir / "config.json").exists():
         config = read_config(run_dir)
-        label = ", ".join(f"{k}={config.get(k)}" for k in label_by) or config["env"]
-        groups[label].append(run_dir)
-    return dict(groups)
+        labels.update({k: config[k] for k in LABEL_KEYS if k in config})
+    if (run_dir / SPEC_FILE).exists():
+        labels.update(json.loads((run_dir / SPEC_FILE).read_text())["labels"])
+    return Run(run_dir, labels, read_progress(run_dir), (run_dir / FINISHED).exists())
+
+
+def load_runs(root) -> list[Run]:
+    """Every run directory (one with a progress.csv) under root, sorted by path."""
+    return [load_run(p.parent) for p in sorted(resolve(root).rglob("progress.csv"))]
+
+
+def summarize(runs: Iterable[Run]) -> list[dict]:
+    """One row per run: its labels, how far it got, and its final and best normalised
+    score (final: the last evaluation; best: the highest one)."""
+    rows = []
+    for run in runs:
+        p = run.progress
+        scores = p.get("normalized_score", np.array([]))
+        has_score = scores.size and not np.all(np.isnan(scores))
+        rows.append(
+            {
+                **{k: run.labels.get(k, "") for k in LABEL_KEYS},
+                "finished": run.finished,
+                "interactions": int(p["interactions"][-1]) if p else 0,
+                "wall_seconds": float(p["wall_seconds"][-1]) if p else 0.0,
+                "evaluations": len(scores),
+                "final_score": float(scores[-1]) if has_score else np.nan,
+                "best_score": float(np.nanmax(scores)) if has_score else np.nan,
+                "run_dir": str(run.run_dir),
+            }
+        )
+    return rows
+
+
+def aggregate(rows: Iterable[dict], by: Sequence[str], values: Sequence[str]) -> list[dict]:
+    """Seeds pooled: for each group of `by`, n and the mean, std, min, max of each value."""
+    groups: dict[tuple, list[dict]] = defaultdict(list)
+    for row in rows:
+        groups[tuple(row[k] for k in by)].append(row)
+    out = []
+    for key, members in sorted(groups.items(), key=lambda item: tuple(map(str, item[0]))):
+        entry = {**dict(zip(by, key, strict=True)), "n": len(members)}
+        for value in values:
+            v = np.array([m[value] for m in members], dtype=float)
+            entry |= {
+                f"{value}_mean": float(v.mean()),
+                f"{value}_std": float(v.std()),
+                f"{value}_min": float(v.min()),
+                f"{value}_max": float(v.max()),
+            }
+        out.append(entry)
+    return out
+
+
+def write_csv(rows: Sequence[dict], path) -> Path:
+    """rows (dicts with the same keys) as a CSV file, written atomically; floats to 5
+    significant digits (progress.csv's precision)."""
+    import nets
+
+    buffer = io.StringIO()
+    if rows:
+        writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
+        writer.writeheader()
+        writer.writerows(
+            {k: f"{v:.5g}" if isinstance(v, float) else v for k, v in row.items()} for row in rows
+        )
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    nets.write_text(path, buffer.getvalue())
+    return path
+
+
+# ----------------------------------------------------------------------------------------
+# Figures.
+# ----------------------------------------------------------------------------------------
 
 
 def mean_and_spread(runs: list[dict[str, np.ndarray]], x: str, y: str):
@@ -51,6 +600,230 @@ def mean_and_spread(runs: list[dict[str, np.ndarray]], x: str, y: str):
     return xs, ys.mean(axis=0), ys.min(axis=0), ys.max(axis=0)
 
 
+def interpolated_band(runs: list[dict[str, np.ndarray]], x: str, y: str, points: int = 200):
+    """Mean, min and max of y over runs, each run interpolated linearly onto a common
+    grid of x from the smallest first x to the smallest last x (where every run has
+    data). Runs evaluate at slightly different interactions and at different wall times,
+    so the rows cannot be paired by index. None if the runs share no span of x."""
+    curves = []
+    for r in runs:
+        keep = ~np.isnan(r[y]) & ~np.isnan(r[x])
+        if keep.sum() >= 2:
+            curves.append((r[x][keep], r[y][keep]))
+    if not curves:
+        return None
+    low_x = max(cx[0] for cx, _ in curves)
+    high_x = min(cx[-1] for cx, _ in curves)
+    if not high_x > low_x:
+        return None
+    xs = np.linspace(low_x, high_x, points)
+    ys = np.stack([np.interp(xs, cx, cy) for cx, cy in curves])
+    return xs, ys.mean(axis=0), ys.min(axis=0), ys.max(axis=0), len(curves)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _reference_lines(ax) -> None:
+    ax.axhline(1.0, color="gray", lw=0.8, ls="--")  # the expert
+    ax.axhline(0.0, color="gray", lw=0.8, ls=":")  # the random policy
+    ax.grid(alpha=0.3)
+
+
+def _save(fig, out_png) -> Path:
+    plt = _pyplot()
+    out_png = Path(out_png)
+    out_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+    return out_png
+
+
+def _seeds(n: int) -> str:
+    return f"{n} seed{'s' * (n != 1)}"
+
+
+def _select(runs: Iterable[Run], finished_only: bool = True, **labels) -> list[Run]:
+    return [
+        r
+        for r in runs
+        if (r.finished or not finished_only)
+        and all(str(r.labels.get(k)) == str(v) for k, v in labels.items())
+    ]
+
+
+def figure2(runs: Sequence[Run], out_png, score: str = "final_score") -> Path | None:
+    """Figure 2: normalised score vs number of trajectories, one column per task, sparse
+    on top and dense below, one line per method (mean over seeds, band min-max).
+
+    Writes out_png, STEM.csv (per setting over seeds) and STEM_runs.csv (per run) from
+    finished runs only; None when there is none.
+    """
+    rows = summarize(_select(runs))
+    if not rows:
+        return None
+    table = aggregate(
+        rows, ("env", "sampling", "method", "trajectories"), ("final_score", "best_score")
+    )
+    out_png = Path(out_png)
+    write_csv(rows, out_png.with_name(f"{out_png.stem}_runs.csv"))
+    write_csv(table, out_png.with_suffix(".csv"))
+    envs = sorted({r["env"] for r in table})
+    samplings = [s for s in ("sparse", "dense") if any(r["sampling"] == s for r in table)]
+    plt = _pyplot()
+    fig, axes = plt.subplots(
+        len(samplings), len(envs), figsize=(4.5 * len(envs), 3.2 * len(samplings)),
+        squeeze=False, sharey=True,
+    )  # fmt: skip
+    for i, sampling in enumerate(samplings):
+        for j, env in enumerate(envs):
+            ax = axes[i][j]
+            for method in [m for m in METHODS if any(r["method"] == m for r in table)]:
+                setting = (env, sampling, method)
+                points = sorted(
+                    (r for r in table if (r["env"], r["sampling"], r["method"]) == setting),
+                    key=lambda r: int(r["trajectories"]),
+                )
+                if not points:
+                    continue
+                xs = [int(r["trajectories"]) for r in points]
+                ax.plot(
+                    xs, [r[f"{score}_mean"] for r in points], marker="o", color=_color(method),
+                    label=f"{method} ({_seeds(max(r['n'] for r in points))})",
+                )  # fmt: skip
+                ax.fill_between(
+                    xs, [r[f"{score}_min"] for r in points], [r[f"{score}_max"] for r in points],
+                    color=_color(method), alpha=0.2,
+                )  # fmt: skip
+            in_panel = [r for r in table if (r["env"], r["sampling"]) == (env, sampling)]
+            ax.set_xticks(sorted({int(r["trajectories"]) for r in in_panel}))
+            _reference_lines(ax)
+            ax.set_title(f"{env}, {sampling}")
+            ax.set_xlabel("trajectories in the dataset")
+            ax.set_ylabel(f"normalised score ({score.split('_')[0]})")
+            ax.legend(fontsize=7)
+    return _save(fig, out_png)
+
+
+def _color(method: str) -> str:
+    """One colour per method in every figure."""
+    return f"C{list(METHODS).index(method) % 10}" if method in METHODS else "k"
+
+
+def _curve_panel(ax, runs: Sequence[Run], methods: Sequence[str], x: str, csv_rows, panel: str):
+    """One line per method: mean score over seeds vs x, band min-max. A method whose runs
+    do not move along x (BC: no interactions) is drawn as a level line at its mean
+    final score. Wall time is shown in hours past two hours; x is logarithmic when the
+    methods' budgets differ a hundredfold (GAIL's millions of interactions)."""
+    bands, levels = {}, {}
+    for method in methods:
+        group = [r.progress for r in runs if r.labels.get("method") == method and r.progress]
+        if group:
+            band = interpolated_band(group, x, "normalized_score")
+            if band is None:
+                levels[method] = (np.mean([g["normalized_score"][-1] for g in group]), len(group))
+            else:
+                bands[method] = band
+    ends = [band[0][-1] for band in bands.values()]
+    scale, unit = (3600.0, "h") if x == "wall_seconds" and max(ends, default=0) > 7200 else (1, "s")
+    for method, (xs, mean, low, high, n) in bands.items():
+        ax.plot(xs / scale, mean, color=_color(method), label=f"{method} ({_seeds(n)})")
+        ax.fill_between(xs / scale, low, high, color=_color(method), alpha=0.2)
+        csv_rows.extend(
+            dict(panel=panel, method=method, x=float(a), mean=float(b), min=float(c),
+                 max=float(d), n=n)
+            for a, b, c, d in zip(xs, mean, low, high, strict=True)
+        )  # fmt: skip
+    for method, (level, n) in levels.items():
+        ax.axhline(level, ls="-.", color=_color(method), label=f"{method} ({_seeds(n)}, final)")
+        csv_rows.append(
+            dict(panel=panel, method=method, x=np.nan, mean=level, min=np.nan, max=np.nan, n=n)
+        )
+    if ends and max(ends) > 100 * min(ends):
+        ax.set_xscale("log")
+    _reference_lines(ax)
+    ax.set_xlabel(f"wall time ({unit})" if x == "wall_seconds" else x.replace("_", " "))
+    ax.set_ylabel("normalised score")
+    ax.legend(fontsize=7)
+
+
+def figure3(
+    runs: Sequence[Run],
+    out_png,
+    sampling: str = "sparse",
+    trajectories: int = 4,
+    methods: Sequence[str] = COMPARED,
+) -> Path | None:
+    """Figure 3: normalised score vs wall time (top) and vs interactions (bottom), one
+    column per task, at one setting (the paper: sparse). Finished runs only; writes
+    STEM.csv with the plotted bands. None when there is no run."""
+    chosen = [
+        r
+        for r in _select(runs, sampling=sampling, trajectories=trajectories)
+        if r.labels.get("method") in methods
+    ]
+    if not chosen:
+        return None
+    envs = sorted({r.labels["env"] for r in chosen})
+    plt = _pyplot()
+    fig, axes = plt.subplots(2, len(envs), figsize=(5 * len(envs), 6.4), squeeze=False)
+    csv_rows: list[dict] = []
+    for j, env in enumerate(envs):
+        in_env = [r for r in chosen if r.labels["env"] == env]
+        for i, x in enumerate(("wall_seconds", "interactions")):
+            _curve_panel(axes[i][j], in_env, methods, x, csv_rows, f"{env} {x}")
+            axes[i][j].set_title(f"{env}, {trajectories} {sampling} trajectories")
+    write_csv(csv_rows, Path(out_png).with_suffix(".csv"))
+    return _save(fig, out_png)
+
+
+def figure4(
+    runs: Sequence[Run],
+    out_png,
+    env: str | None = None,
+    sampling: str = "sparse",
+    trajectories: int = 4,
+    methods: Sequence[str] = ("Ours", *ABLATIONS),
+) -> Path | None:
+    """Figure 4: normalised score vs interactions for Ours and its ablations on one task
+    (default: the task of the ablation runs). Finished runs only; writes STEM.csv. None
+    when no ablation run has finished (Ours alone is no ablation)."""
+    chosen = [
+        r
+        for r in _select(runs, sampling=sampling, trajectories=trajectories)
+        if r.labels.get("method") in methods and (env is None or r.labels.get("env") == env)
+    ]
+    ablated = [r for r in chosen if r.labels.get("method") != "Ours"]
+    if not ablated:
+        return None
+    env = env or ablated[0].labels["env"]
+    chosen = [r for r in chosen if r.labels.get("env") == env]
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    csv_rows: list[dict] = []
+    _curve_panel(ax, chosen, methods, "interactions", csv_rows, env)
+    ax.set_title(f"Ablations: {env}, {trajectories} {sampling} trajectories")
+    write_csv(csv_rows, Path(out_png).with_suffix(".csv"))
+    return _save(fig, out_png)
+
+
+def group_runs(run_dirs, label_by: list[str]) -> dict[str, list[Path]]:
+    """Runs grouped by the values of the config keys in `label_by` (seeds pooled)."""
+    groups: dict[str, list[Path]] = defaultdict(list)
+    for run_dir in map(Path, run_dirs):
+        config = read_config(run_dir)
+        label = ", ".join(f"{k}={config.get(k)}" for k in label_by) or config["env"]
+        groups[label].append(run_dir)
+    return dict(groups)
+
+
 def plot_curves(
     groups: dict[str, list[Path]],
     out_png,
@@ -59,11 +832,7 @@ def plot_curves(
     title: str = "",
 ) -> None:
     """One line per group (mean over seeds) with the min-max band over seeds."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7, 4))
     for label, run_dirs in groups.items():
         runs = [read_progress(d) for d in run_dirs]
@@ -80,15 +849,40 @@ def plot_curves(
     ax.set_title(title)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig.tight_layout()
-    Path(out_png).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=110)
-    plt.close(fig)
+    _save(fig, out_png)
 
 
-def main(argv=None) -> None:
+# ----------------------------------------------------------------------------------------
+# Command line.
+# ----------------------------------------------------------------------------------------
+
+DEFAULT_RUNS = {"quick": "runs/quick", "full": "runs/sweep"}
+DEFAULT_FIGURES = {"quick": "runs/quick/figures", "full": "figures"}
+
+
+def draw_figures(runs_root, out_dir) -> dict[str, Path | None]:
+    """Figures 2-4 from the runs under runs_root into out_dir (None: nothing to draw)."""
+    runs = load_runs(runs_root)
+    out_dir = resolve(out_dir)
+    return {
+        "figure2": figure2(runs, out_dir / "figure2.png"),
+        "figure3": figure3(runs, out_dir / "figure3.png"),
+        "figure4": figure4(runs, out_dir / "figure4.png"),
+    }
+
+
+def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
+    run = sub.add_parser("sweep", help="run (or resume, or skip) every run of a plan")
+    run.add_argument("mode", choices=("quick", "full"))
+    run.add_argument("--runs", help="root of the run directories (default: runs/MODE...)")
+    run.add_argument("--workers", type=int, help="runs at a time in the local pool")
+    run.add_argument("--scheduler", help="address of a Dask scheduler to run on instead")
+    figures = sub.add_parser("figures", help="Figures 2-4 (PNG and CSV) from the runs")
+    figures.add_argument("mode", choices=("quick", "full"))
+    figures.add_argument("--runs", help="root of the run directories")
+    figures.add_argument("--out", help="folder of the figures (full: figures/)")
     curves = sub.add_parser("curves", help="normalised score vs interactions, PNG")
     curves.add_argument("out")
     curves.add_argument("run_dirs", nargs="+")
@@ -97,8 +891,28 @@ def main(argv=None) -> None:
     curves.add_argument("--y", default="normalized_score")
     curves.add_argument("--title", default="")
     args = parser.parse_args(argv)
-    plot_curves(group_runs(args.run_dirs, args.label_by), args.out, args.x, args.y, args.title)
+
+    if args.command == "curves":
+        plot_curves(group_runs(args.run_dirs, args.label_by), args.out, args.x, args.y, args.title)
+        return 0
+    runs_root = args.runs or DEFAULT_RUNS[args.mode]
+    if args.command == "figures":
+        for name, path in draw_figures(runs_root, args.out or DEFAULT_FIGURES[args.mode]).items():
+            print(f"{name}: {path or 'skipped (no finished runs for it)'}")
+        return 0
+    specs, skipped = split_runnable(plan(args.mode == "quick", runs_root))
+    for method, reason in skipped.items():
+        print(f"skipping {method}: {reason}")
+    if args.scheduler:
+        from distributed import Client
+
+        with Client(args.scheduler) as client:
+            results = sweep(specs, client.get_executor())
+    else:
+        results = sweep(specs, workers=args.workers)
+    print(", ".join(f"{n} {status}" for status, n in status_counts(results).items()))
+    return 0 if all(r.ok for r in results) else 1
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
