@@ -1,0 +1,340 @@
+"""The sweep (skip, resume, failures, needs, Dask), the figures, and experiments.ipynb in
+quick mode. Real runs are tiny (a few seconds each); the whole file takes about two minutes
+on 2 cores, most of it the notebook."""
+
+import json
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import experiments
+from experiments import ROOT, RunSpec
+
+TINY = experiments.QUICK_ARGS["offpac_il.py"]
+
+
+def tiny_spec(run_dir, *extra, seed=0) -> RunSpec:
+    """A real learner run of a few seconds."""
+    args = ("--env", "Hopper-v4", "--seed", seed, *TINY, *extra)
+    return RunSpec("offpac_il.py", args, str(run_dir), {"method": "Ours", "seed": seed})
+
+
+def script(tmp_path: Path, name: str, body: str) -> str:
+    """A stand-in training script (absolute path) that parses --run-dir like the real ones."""
+    path = tmp_path / name
+    path.write_text(
+        "import argparse, pathlib, sys\n"
+        "parser = argparse.ArgumentParser()\n"
+        "parser.add_argument('--run-dir', default='')\n"
+        "parser.add_argument('--resume', default='')\n"
+        "parser.add_argument('--init', default='')\n"
+        "args = parser.parse_args()\n"
+        "run_dir = pathlib.Path(args.run_dir or args.resume)\n" + textwrap.dedent(body)
+    )
+    return str(path)
+
+
+def finishing_script(tmp_path: Path) -> str:
+    return script(tmp_path, "finishes.py", "(run_dir / 'policy_final.npz').write_bytes(b'')\n")
+
+
+# ----------------------------------------------------------------------------------------
+# The sweep.
+# ----------------------------------------------------------------------------------------
+
+
+def test_sweep_runs_then_skips_finished_runs(tmp_path):
+    specs = [tiny_spec(tmp_path / "a", seed=0), tiny_spec(tmp_path / "b", seed=1)]
+    lines = []
+    first = experiments.sweep(specs, echo=lines.append)
+    assert [r.status for r in first] == ["completed", "completed"], [r.line() for r in first]
+    assert [r.spec for r in first] == specs  # in the order of the specs
+    assert len(lines) == 2
+    progress = experiments.read_progress(tmp_path / "a")
+    assert progress["interactions"][-1] >= 300
+    saved = (tmp_path / "a" / "progress.csv").read_bytes()
+
+    again = experiments.sweep(specs, echo=None)
+    assert [r.status for r in again] == ["skipped", "skipped"]
+    assert (tmp_path / "a" / "progress.csv").read_bytes() == saved
+    # The run directory describes itself: the spec that made it and its log.
+    run = experiments.load_run(tmp_path / "a")
+    assert run.finished and run.labels["method"] == "Ours" and run.labels["env"] == "Hopper-v4"
+    assert "--run-dir" in (tmp_path / "a" / experiments.LOG_FILE).read_text()
+
+
+def test_sweep_resumes_an_interrupted_run(tmp_path):
+    run_dir = tmp_path / "run"
+    spec = tiny_spec(run_dir, "--total-steps", "1500", "--checkpoint-every", "0")
+    process = subprocess.Popen(
+        spec.command(),
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while not (run_dir / "checkpoint.npz").exists():
+            assert process.poll() is None, "the run ended before its first checkpoint"
+            assert time.monotonic() < deadline, "no checkpoint after 120 s"
+            time.sleep(0.05)
+        time.sleep(0.3)  # a few more episodes (one checkpoint after each)
+    finally:
+        os.killpg(process.pid, signal.SIGKILL)  # like a lost machine: no clean exit
+        process.wait()
+    assert not (run_dir / "policy_final.npz").exists(), "the run finished before it was killed"
+
+    [result] = experiments.sweep([spec], echo=None)
+    assert result.status == "resumed", result.line()
+    assert f"--resume {run_dir}" in (run_dir / experiments.LOG_FILE).read_text()
+    progress = experiments.read_progress(run_dir)
+    assert progress["interactions"][0] == 0 and progress["interactions"][-1] >= 1500
+    assert np.all(np.diff(progress["interactions"]) > 0)
+
+
+def test_sweep_reports_failures_and_runs_the_rest(tmp_path):
+    finishes = finishing_script(tmp_path)
+    crashes = script(tmp_path, "crashes.py", "raise RuntimeError('boom in the learner')\n")
+    quits = script(tmp_path, "quits.py", "print('nothing to do')\n")
+    specs = [
+        RunSpec(crashes, (), tmp_path / "crashed"),
+        RunSpec(tmp_path / "no_such_script.py", (), tmp_path / "missing"),
+        RunSpec(quits, (), tmp_path / "quit"),
+        tiny_spec(tmp_path / "good"),  # a real run, after and between failures
+        RunSpec(finishes, (), tmp_path / "after-crash", needs=[tmp_path / "crashed"]),
+        RunSpec(finishes, (), tmp_path / "after-good", needs=[tmp_path / "good"]),
+        RunSpec(finishes, (), tmp_path / "needs-nothing-there", needs=[tmp_path / "never-made"]),
+    ]
+    results = experiments.sweep(specs, workers=2, echo=None)
+    status = {Path(r.spec.run_dir).name: r for r in results}
+    assert status["crashed"].status == "failed" and status["crashed"].returncode == 1
+    assert "boom in the learner" in status["crashed"].message
+    assert status["missing"].status == "failed" and "no script" in status["missing"].message
+    assert status["quit"].status == "failed" and "no policy_final.npz" in status["quit"].message
+    assert status["good"].status == "completed"
+    assert (
+        status["after-crash"].status == "failed" and "which failed" in status["after-crash"].message
+    )
+    assert not (tmp_path / "after-crash").exists()  # never started
+    assert status["after-good"].status == "completed"
+    assert "needs the finished run" in status["needs-nothing-there"].message
+    assert experiments.status_counts(results) == {"failed": 5, "completed": 2}
+
+
+def test_sweep_rejects_two_specs_with_one_run_dir(tmp_path):
+    spec = RunSpec("offpac_il.py", (), tmp_path / "same")
+    with pytest.raises(ValueError, match="share the run directory"):
+        experiments.sweep([spec, RunSpec("baselines.py", ("bc",), tmp_path / "same")])
+
+
+def test_sweep_on_a_dask_local_cluster(tmp_path):
+    import distributed  # in requirements.txt: missing is a failure, not a skip
+
+    finishes = finishing_script(tmp_path)
+    specs = [
+        tiny_spec(tmp_path / "real"),
+        RunSpec(finishes, (), tmp_path / "stand-in"),
+        RunSpec(tmp_path / "absent.py", (), tmp_path / "fails"),
+    ]
+    # What Dask sends to its workers: the function by reference (the workers import it).
+    assert len(pickle.dumps(experiments.run_one)) < 100
+    assert pickle.loads(pickle.dumps(specs[0])) == specs[0]
+    with (
+        distributed.LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        results = experiments.sweep(specs, client.get_executor(), echo=None)
+    assert [r.status for r in results] == ["completed", "completed", "failed"]
+    assert (tmp_path / "real" / "policy_final.npz").exists()
+
+
+def test_run_spec_command_line():
+    spec = RunSpec("baselines.py", ("bc-gail", "--seed", 3, "--bc-init", "x"), "runs/y")
+    assert spec.args == ("bc-gail", "--seed", "3", "--bc-init", "x")
+    assert spec.subcommand == ("bc-gail",)
+    assert spec.command()[1:] == ["baselines.py", *spec.args, "--run-dir", "runs/y"]
+    assert spec.command(resume=True)[1:] == ["baselines.py", "bc-gail", "--resume", "runs/y"]
+
+
+# ----------------------------------------------------------------------------------------
+# Plans and what exists yet.
+# ----------------------------------------------------------------------------------------
+
+
+def test_plan_covers_the_figures_once_each():
+    quick = experiments.plan(True, "runs/q")
+    full = experiments.plan(False, "runs/f")
+    for specs in (quick, full):
+        dirs = [s.run_dir for s in specs]
+        assert len(dirs) == len(set(dirs))
+        assert {s.labels["method"] for s in specs} == set(experiments.METHODS)
+        for s in specs:
+            if s.labels["method"] == "BC+GAIL":  # starts from the BC run of its setting
+                [need] = s.needs
+                assert need == str(experiments.run_dir_of(Path(s.run_dir).parents[3], "BC", **{
+                    k: s.labels[k] for k in ("env", "sampling", "trajectories", "seed")
+                }))  # fmt: skip
+                assert need in s.args
+    assert all("--total-steps" not in s.args for s in full)  # the scripts' own defaults
+    assert {s.labels["trajectories"] for s in full} == {1, 4, 7, 10}
+    assert {s.labels["seed"] for s in full} == {0, 1, 2}
+
+
+def test_missing_support_names_what_is_missing(tmp_path):
+    cli = script(tmp_path, "cli.py", "")
+    assert experiments.missing_support(RunSpec(cli, ("--init", "x"), "r")) is None
+    reason = experiments.missing_support(RunSpec(cli, ("--on-policy",), "r"))
+    assert reason == f"{cli} has no --on-policy yet"
+    reason = experiments.missing_support(RunSpec(tmp_path / "nope.py", (), "r"))
+    assert "does not exist yet" in reason
+    runnable, skipped = experiments.split_runnable(
+        [RunSpec(cli, (), "a", {"method": "A"}), RunSpec(cli, ("--x",), "b", {"method": "B"})]
+    )
+    assert [s.run_dir for s in runnable] == ["a"] and set(skipped) == {"B"}
+
+
+# ----------------------------------------------------------------------------------------
+# Figures.
+# ----------------------------------------------------------------------------------------
+
+
+def fake_run(root: Path, method: str, seed: int, trajectories: int, sampling: str, scale: float):
+    """A finished run directory as a script would leave it (for the plots only)."""
+    run_dir = experiments.run_dir_of(root, method, "Hopper-v4", sampling, trajectories, seed)
+    run_dir.mkdir(parents=True)
+    moves = method != "BC"  # BC never interacts: its interactions stay 0
+    rows = ["interactions,wall_seconds,normalized_score"]
+    for k in range(6):
+        interactions = k * 1000 * (100 if method == "GAIL" else 1) if moves else 0
+        score = scale * k / 5 + 0.05 * seed
+        rows.append(f"{interactions},{10.0 * k + seed},{score}")
+    (run_dir / "progress.csv").write_text("\n".join(rows) + "\n")
+    labels = dict(method=method, env="Hopper-v4", sampling=sampling, trajectories=trajectories,
+                  seed=seed)  # fmt: skip
+    (run_dir / experiments.SPEC_FILE).write_text(json.dumps({"labels": labels}))
+    (run_dir / "config.json").write_text(json.dumps({"env": "Hopper-v4", "seed": seed}))
+    (run_dir / "policy_final.npz").write_bytes(b"")
+
+
+def is_png(path) -> bool:
+    return Path(path).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_figures_write_png_and_csv(tmp_path):
+    runs_root, out = tmp_path / "runs", tmp_path / "figures"
+    for seed in (0, 1):
+        for method, scale in (("Ours", 0.9), ("BC", 0.3), ("GAIL", 0.8), ("Ours+OnP", 0.2)):
+            for sampling in ("sparse", "dense"):
+                for n in (1, 4):
+                    if method != "Ours+OnP" or (sampling, n) == ("sparse", 4):
+                        fake_run(runs_root, method, seed, n, sampling, scale * n / 4)
+    unfinished = experiments.run_dir_of(runs_root, "Ours", "Hopper-v4", "sparse", 4, 7)
+    fake_run(runs_root, "Ours", 7, 4, "sparse", 5.0)
+    (unfinished / "policy_final.npz").unlink()  # left out of every figure
+
+    runs = experiments.load_runs(runs_root)
+    assert len(runs) == 27
+    figures = experiments.draw_figures(runs_root, out)
+    assert all(is_png(path) for path in figures.values())
+    table = (out / "figure2.csv").read_text().splitlines()
+    assert table[0].startswith("env,sampling,method,trajectories,n,final_score_mean")
+    assert "Hopper-v4,sparse,Ours,4,2,0.925," in "\n".join(table)  # (0.9 + 0.95) / 2
+    assert len((out / "figure2_runs.csv").read_text().splitlines()) == 1 + 26
+    curves = (out / "figure3.csv").read_text()
+    assert "Hopper-v4 interactions,BC,nan," in curves  # no interactions: a level line
+    assert "Ours+OnP" in (out / "figure4.csv").read_text()
+
+    # Without ablation runs there is no Figure 4.
+    only_ours = [r for r in runs if r.labels["method"] == "Ours"]
+    assert experiments.figure4(only_ours, out / "none.png") is None
+    assert not (out / "none.png").exists()
+
+    experiments.main(["curves", str(out / "curves.png"), *map(str, (r.run_dir for r in runs[:2]))])
+    assert is_png(out / "curves.png")
+
+
+def test_interpolated_band_pools_runs_on_a_common_grid():
+    a = {"t": np.array([0.0, 10.0]), "y": np.array([0.0, 1.0])}
+    b = {"t": np.array([0.0, 4.0, 8.0]), "y": np.array([1.0, 1.0, 1.0])}
+    xs, mean, low, high, n = experiments.interpolated_band([a, b], "t", "y", points=5)
+    np.testing.assert_allclose(xs, [0, 2, 4, 6, 8])  # up to where both runs have data
+    np.testing.assert_allclose(mean, (np.array([0, 0.2, 0.4, 0.6, 0.8]) + 1) / 2)
+    np.testing.assert_allclose(low, [0, 0.2, 0.4, 0.6, 0.8])
+    assert n == 2 and np.all(high == 1)
+    flat = {"t": np.array([0.0, 0.0]), "y": np.array([0.2, 0.3])}
+    assert experiments.interpolated_band([flat], "t", "y") is None
+
+
+# ----------------------------------------------------------------------------------------
+# The notebook, in quick mode, as CI runs it.
+# ----------------------------------------------------------------------------------------
+
+
+def test_notebook_runs_in_quick_mode(tmp_path):
+    import nbclient
+    import nbformat
+    from jupyter_client.kernelspec import KernelSpecManager
+
+    # The kernel must exist in a fresh virtual environment (ipykernel installs it).
+    KernelSpecManager().get_kernel_spec("python3")
+    notebook = nbformat.read(ROOT / "experiments.ipynb", as_version=4)
+    [parameters] = [
+        i for i, cell in enumerate(notebook.cells) if "parameters" in cell.metadata.get("tags", [])
+    ]
+    assert "QUICK = True" in notebook.cells[parameters].source
+    readme_figures = {p: p.stat().st_mtime_ns for p in (ROOT / "figures").glob("*")}
+    # Injected after the parameters cell, as papermill does: runs and figures in tmp_path.
+    injected = (
+        f"QUICK = True\nRUNS = {str(tmp_path / 'runs')!r}\nFIGURES = {str(tmp_path / 'fig')!r}"
+    )
+    notebook.cells.insert(parameters + 1, nbformat.v4.new_code_cell(injected))
+    nbclient.NotebookClient(
+        notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(ROOT)}}
+    ).execute()
+
+    text = "\n".join(
+        output.get("text", "")
+        for cell in notebook.cells
+        if cell.cell_type == "code"
+        for output in cell.outputs
+    )
+    assert "quick mode" in text
+    assert "'failed'" not in text  # the sweep's status counts
+    assert is_png(tmp_path / "fig" / "figure2.png") and is_png(tmp_path / "fig" / "figure3.png")
+    assert (tmp_path / "fig" / "figure2.csv").exists()
+    # Figure 4 is drawn exactly when an ablation ran; otherwise the notebook says so.
+    ablations_ran = any(
+        (tmp_path / "runs" / "Hopper-v4" / experiments._slug(m)).exists()
+        for m in experiments.ABLATIONS
+    )
+    assert (tmp_path / "fig" / "figure4.png").exists() == ablations_ran
+    assert ablations_ran or "Figure 4 skipped" in text
+    # Table 1 is rendered from experts/table.json.
+    markdown = [
+        output["data"].get("text/markdown", "")
+        for cell in notebook.cells
+        if cell.cell_type == "code"
+        for output in cell.outputs
+        if output.output_type == "display_data"
+    ]
+    assert any("| Hopper-v4 | 11 | 3 |" in m for m in markdown)
+    # The README's figures are never touched by quick mode.
+    assert {p: p.stat().st_mtime_ns for p in (ROOT / "figures").glob("*")} == readme_figures
+
+
+def test_module_runs_as_a_script():
+    done = subprocess.run(
+        [sys.executable, "experiments.py", "--help"], cwd=ROOT, capture_output=True, text=True
+    )
+    assert done.returncode == 0 and "sweep" in done.stdout and "figures" in done.stdout
