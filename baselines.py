@@ -601,6 +601,11 @@ GAIL_DIAGNOSTICS = (
 )
 
 
+def rounded(value):
+    """Counts as they are, measurements to 5 significant digits (as the learner's rows)."""
+    return value if isinstance(value, int) else float(f"{value:.5g}")
+
+
 def method_of(config: RunSettings) -> str:
     if isinstance(config, BCConfig):
         return "bc"
@@ -735,22 +740,15 @@ class Run:
             "normalized_score": round(self.normalized(float(returns.mean())), 4),
             "train_return": round(float(np.mean(recent)), 2) if recent else "",
             **{
-                name: float(f"{measured[name]:.5g}") if name in measured else ""
+                name: rounded(measured[name]) if name in measured else ""
                 for name in offpac_il.PROGRESS_FIELDS[8:]
             },
         }
         progress.rows.append(row)
         recent.clear()
         diagnostics = {
-            name: (
-                ""
-                if name not in measured
-                else value
-                if isinstance(value, int)
-                else float(f"{value:.5g}")
-            )
+            name: rounded(measured[name]) if name in measured else ""
             for name in self.diagnostic_fields
-            for value in [measured.get(name)]
         }
         agent.diagnostics.append(diagnostics)
         if returns.mean() > progress.best_eval_return:
@@ -924,8 +922,9 @@ def gail_iteration(
             updates += 1
 
     means = {
-        k: float(np.mean([s[k] for s in d_stats + ppo_stats if k in s]))
-        for k in {k for s in d_stats + ppo_stats for k in s}
+        name: float(np.mean([stats[name] for stats in records]))
+        for records in (d_stats, ppo_stats)
+        for name in records[0]
     }
     return {
         **means,
