@@ -1037,27 +1037,8 @@ METHODS = {
 }
 
 
-def add_dataclass_flags(parser: argparse.ArgumentParser, cls) -> None:
-    """One flag per field, help from its docstring (inherited fields' too), as
-    offpac_il.build_parser does for the learner's Config."""
-    docs = {}
-    for klass in reversed(cls.__mro__):
-        if dataclasses.is_dataclass(klass):
-            docs.update(expert.field_docstrings(klass))
-    for f in dataclasses.fields(cls):
-        flag, default = "--" + f.name.replace("_", "-"), f.default
-        if isinstance(default, bool):
-            parser.add_argument(
-                flag, action=argparse.BooleanOptionalAction, default=default, help=docs[f.name]
-            )
-        elif isinstance(default, tuple):
-            parser.add_argument(flag, type=int, nargs="+", default=default, help=docs[f.name])
-        else:
-            parser.add_argument(flag, type=type(default), default=default, help=docs[f.name])
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = expert.CommandLineParser(
         description="Baselines of Sasaki et al. (ICLR 2019), Sec. 5: BC, GAIL, BC+GAIL."
     )
     methods = parser.add_subparsers(dest="method", required=True, metavar="METHOD")
@@ -1068,7 +1049,7 @@ def build_parser() -> argparse.ArgumentParser:
             description=summary,
             formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         )
-        add_dataclass_flags(sub, cls)
+        expert.add_dataclass_flags(sub, cls)
         sub.add_argument(
             "--resume",
             metavar="RUN_DIR",

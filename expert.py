@@ -1060,6 +1060,34 @@ def field_docstrings(cls) -> dict[str, str]:
     return docs
 
 
+def add_dataclass_flags(parser: argparse.ArgumentParser, cls) -> None:
+    """One --flag per dataclass field, its help text the field's docstring (inherited
+    fields' too): the command lines of expert.py, offpac_il.py and baselines.py."""
+    docs = {}
+    for klass in reversed(cls.__mro__):
+        if dataclasses.is_dataclass(klass):
+            docs.update(field_docstrings(klass))
+    for f in dataclasses.fields(cls):
+        flag, default = "--" + f.name.replace("_", "-"), f.default
+        if isinstance(default, bool):
+            parser.add_argument(
+                flag, action=argparse.BooleanOptionalAction, default=default, help=docs[f.name]
+            )
+        elif isinstance(default, tuple):
+            parser.add_argument(flag, type=int, nargs="+", default=default, help=docs[f.name])
+        else:
+            parser.add_argument(flag, type=type(default), default=default, help=docs[f.name])
+
+
+class CommandLineParser(argparse.ArgumentParser):
+    """argparse, but a bad flag ends in one line on stderr and exit status 2 (no usage
+    dump), like every other error a user can cause."""
+
+    def error(self, message: str):
+        print(f"error: {message} (see {self.prog} --help)", file=sys.stderr)
+        sys.exit(2)
+
+
 def command_line(argv: list[str]) -> str:
     return shlex.join(["python", "expert.py", *argv])
 
@@ -1142,7 +1170,7 @@ def cli_table(args, argv) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="expert.py", description=__doc__.splitlines()[0])
+    parser = CommandLineParser(prog="expert.py", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
 
     train_parser = commands.add_parser("train", help="train an ARS V2-t expert")

@@ -703,9 +703,11 @@ def train(config: Config, resume: bool = False) -> Progress:
     while True:
         recent_returns, stats = progress.recent_returns, progress.last_stats
         # Evaluate at 0 and every eval_every interactions (at the episode end that crosses it).
-        if progress.interactions >= progress.eval_rounds * config.eval_every or (
-            progress.interactions >= config.total_steps
-        ):
+        evaluated_here = bool(progress.rows) and (
+            progress.rows[-1]["interactions"] == progress.interactions
+        )  # true when resuming a run that had already finished
+        due = progress.interactions >= progress.eval_rounds * config.eval_every
+        if not evaluated_here and (due or progress.interactions >= config.total_steps):
             returns = evaluate(eval_env, learner, spaces, config, progress.eval_rounds)
             diagnostics = imitation_diagnostics(
                 learner,
@@ -790,21 +792,11 @@ def train(config: Config, resume: bool = False) -> Progress:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = expert.CommandLineParser(
         description="Off-policy actor-critic imitation learning (Sasaki et al., ICLR 2019).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    docs = expert.field_docstrings(Config)
-    for f in dataclasses.fields(Config):
-        flag, default = "--" + f.name.replace("_", "-"), f.default
-        if isinstance(default, bool):
-            parser.add_argument(
-                flag, action=argparse.BooleanOptionalAction, default=default, help=docs[f.name]
-            )
-        elif isinstance(default, tuple):
-            parser.add_argument(flag, type=int, nargs="+", default=default, help=docs[f.name])
-        else:
-            parser.add_argument(flag, type=type(default), default=default, help=docs[f.name])
+    expert.add_dataclass_flags(parser, Config)
     parser.add_argument(
         "--resume",
         metavar="RUN_DIR",

@@ -318,6 +318,9 @@ def test_resume_reproduces_an_uninterrupted_run(tmp_path, hopper_demos, monkeypa
     offpac_il.train(tiny_config(interrupted, hopper_demos), resume=True)
 
     whole = read_progress(tmp_path / "whole")
+    # Resuming a finished run adds nothing.
+    offpac_il.train(tiny_config(tmp_path / "whole", hopper_demos), resume=True)
+    assert read_progress(tmp_path / "whole") == whole
     assert read_progress(same_seed) == whole
     assert read_progress(other_seed) != whole
     assert read_progress(interrupted) == whole
@@ -360,6 +363,8 @@ def test_kill_and_resume_from_the_command_line(tmp_path, hopper_demos):
         (["--env", "NoSuchEnv-v0"], "NoSuchEnv-v0"),
         (["--termination", "sometimes"], "--termination"),
         (["--resume", "/nonexistent/run"], "/nonexistent/run"),
+        (["--bogus-flag"], "--bogus-flag"),
+        (["--seed", "many"], "--seed"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
