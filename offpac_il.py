@@ -99,6 +99,8 @@ class Config:
     """Standardise states by the demonstrations' mean and std (+1e-3)."""
     critic_reg: float = 0.0
     """Weight of D_JS(q_nu(s,a) || q_nu'(s,a)), the submitted version's critic regulariser."""
+    policy_expert_states: float = 0.0
+    """Fraction of the policy step's states drawn from the demonstrations (paper: 0)."""
 
     eval_every: int = 5_000
     """Interactions between evaluations."""
@@ -136,6 +138,8 @@ def check_config(config: Config) -> None:
             raise UserError(f"--{name.replace('_', '-')} must be at least 1")
     if not 0.0 <= config.gamma < 1.0:
         raise UserError("--gamma must lie in [0, 1)")
+    if not 0.0 <= config.policy_expert_states <= 1.0:
+        raise UserError("--policy-expert-states must lie in [0, 1]")
 
 
 # ----------------------------------------------------------------------------------------
@@ -495,8 +499,12 @@ def update(
     stats = critic_step(
         learner, expert_batch, replay.sample(rng, config.batch_size), config, critic_lr, rng
     )
-    replay_states = replay.sample(rng, config.batch_size).states  # line 13: a fresh batch
-    stats.update(policy_step(learner, replay_states, config, policy_lr, rng))
+    policy_states = replay.sample(rng, config.batch_size).states  # line 13: a fresh batch
+    n_expert = round(config.policy_expert_states * config.batch_size)
+    if n_expert:  # a deviation from Alg. 1 (off by default): some states from B_pi_E
+        expert_rows = rng.integers(0, len(expert_buffer.states), n_expert)
+        policy_states[:n_expert] = expert_buffer.states[expert_rows]
+    stats.update(policy_step(learner, policy_states, config, policy_lr, rng))
     return stats
 
 

@@ -382,3 +382,25 @@ def test_bad_demo_file_is_refused(tmp_path):
     assert result.returncode == 2
     assert len(result.stderr.strip().splitlines()) == 1 and str(bad) in result.stderr
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("fraction", [0.0, 0.5, 1.0])
+def test_policy_expert_states_fraction(monkeypatch, fraction):
+    """--policy-expert-states draws that share of the policy step's states from B_pi_E."""
+    learner, config, rng = small_learner(
+        4, policy_expert_states=fraction, batch_size=8, noise_samples=2, target_samples=2
+    )
+    expert_buffer = random_triplets(rng, 20)
+    replay = offpac_il.ReplayBuffer(50, 3, 2)
+    for _ in range(30):
+        replay.add(rng.standard_normal(3) + 100.0, rng.uniform(-1, 1, 2), np.zeros(3), False)
+    seen = {}
+
+    def capture(learner, states, *args):
+        seen["states"] = states
+        return {}
+
+    monkeypatch.setattr(offpac_il, "policy_step", capture)
+    offpac_il.update(learner, expert_buffer, replay, config, 0, rng)
+    from_expert = (np.abs(seen["states"]) < 50).all(axis=1)  # replay states sit near 100
+    assert from_expert.sum() == round(fraction * 8)
