@@ -49,7 +49,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Executor, ThreadPoolExecutor, wait
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -816,9 +816,13 @@ def figure4(
 
 def group_runs(run_dirs, label_by: list[str]) -> dict[str, list[Path]]:
     """Runs grouped by the values of the config keys in `label_by` (seeds pooled)."""
+    import offpac_il
+
+    # A run made before a setting existed ran with that setting's default.
+    defaults = {f.name: f.default for f in fields(offpac_il.Config)}
     groups: dict[str, list[Path]] = defaultdict(list)
     for run_dir in map(Path, run_dirs):
-        config = read_config(run_dir)
+        config = {**defaults, **read_config(run_dir)}
         label = ", ".join(f"{k}={config.get(k)}" for k in label_by) or config["env"]
         groups[label].append(run_dir)
     return dict(groups)
