@@ -414,7 +414,8 @@ def gae(rewards, values, next_values, terminal, episode_end, gamma: float, lam: 
 
     terminal_t: s_{t+1} is terminal (a fall), so nothing follows it; end_t: the episode
     ends at t, by a fall or by the time limit. A time-limit end still bootstraps from
-    V(s_{t+1}) in delta_t (GUIDE 2), but the sum A_t stops there. All arrays (T,).
+    V(s_{t+1}) in delta_t (a time limit is not a fall), but the sum A_t stops there.
+    All arrays (T,).
     """
     advantages = np.zeros(len(rewards), np.float64)
     following = 0.0  # A_{t+1}
@@ -804,7 +805,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> offpac_il.Progress:
         )
     held_out, training = order[:n_held_out], order[n_held_out:]
 
-    rng = np.random.default_rng(config.seed)  # the run's one Generator (GUIDE 3)
+    rng = np.random.default_rng(config.seed)  # the run's one Generator
     policy = GaussianPolicy.create(
         states.shape[1], actions.shape[1], config.policy_hidden, config.log_std_init, rng
     )
@@ -965,7 +966,7 @@ def train_gail(config: GAILConfig, resume: bool = False) -> offpac_il.Progress:
     """GAIL: iterations of whole-episode rollouts, discriminator steps and PPO epochs."""
     run = Run.open(config, resume)
     state_dim, action_dim = run.expert_states.shape[1], run.expert_actions.shape[1]
-    rng = np.random.default_rng(config.seed)  # the run's one Generator (GUIDE 3)
+    rng = np.random.default_rng(config.seed)  # the run's one Generator
     run.env.action_space.seed(config.seed)
     policy = GaussianPolicy.create(
         state_dim, action_dim, config.policy_hidden, config.log_std_init, rng

@@ -631,7 +631,7 @@ class ARSConfig:
     """Episodes per evaluation; the best evaluated policy is the one shipped."""
 
 
-# rl-baselines3-zoo ars.yml, "closest to the original paper" (GUIDE.md Sec. 4), plus budgets.
+# rl-baselines3-zoo ars.yml, "closest to the original paper", plus budgets.
 ARS_DEFAULTS = {
     "Hopper-v4": dict(
         step_size=0.01, directions=8, top=4, noise=0.025, survival_bonus=1.0, steps=7_000_000

@@ -92,7 +92,8 @@ class Config:
 
     # Defaults from the measurements in the README: under objective (18) the absorbing
     # state taught Hopper to fall at once; zero continuation is the only treatment that
-    # makes a fall worse than staying up. Standardisation follows GUIDE.md section 4.
+    # makes a fall worse than staying up. Standardisation, as DAC and ValueDICE do by
+    # default, is not yet measured against its absence here.
     termination: str = "zero"
     """At a terminal s': bootstrap (literal Alg. 1), absorbing (DAC), or zero (q'^gamma=0)."""
     standardize: bool = True
@@ -143,7 +144,7 @@ def check_config(config: Config) -> None:
 
 
 # ----------------------------------------------------------------------------------------
-# Spaces: the learner acts in [-1, 1]^dim A (GUIDE 2, action scaling) and sees
+# Spaces: the learner acts in [-1, 1]^dim A and sees
 # standardised states, with one extra indicator input for the absorbing state.
 # ----------------------------------------------------------------------------------------
 
@@ -183,7 +184,7 @@ class Spaces:
 
 def make_spaces(env, demos: expert.Demos, config: Config) -> Spaces:
     obs_dim = env.observation_space.shape[0]
-    if config.standardize:  # GUIDE 2: as DAC and ValueDICE do
+    if config.standardize:  # as DAC and ValueDICE do
         mean = demos.observations.mean(axis=0)
         std = demos.observations.std(axis=0) + 1e-3
     else:
@@ -524,7 +525,7 @@ def run_episode(
     """One episode with a_t = pi_theta(s_t, z), z ~ N(0, I); stores triplets if `replay`.
 
     Returns (true return, length). Only `terminated` ends the value chain; a time-limit
-    truncation bootstraps like any other step (GUIDE 2).
+    truncation bootstraps like any other step.
     """
     observation, _ = env.reset(seed=seed)
     state = spaces.state(observation)
@@ -689,7 +690,7 @@ def train(config: Config, resume: bool = False) -> Progress:
     expert_buffer = expert_buffer_from(demos, spaces)
     state_dim, action_dim = expert_buffer.states.shape[1], expert_buffer.actions.shape[1]
 
-    rng = np.random.default_rng(config.seed)  # the run's one Generator (GUIDE 3)
+    rng = np.random.default_rng(config.seed)  # the run's one Generator, passed explicitly
     env.action_space.seed(config.seed)
     learner = Learner.create(state_dim, env.observation_space.shape[0], action_dim, config, rng)
     replay = ReplayBuffer(config.replay_size, state_dim, action_dim)

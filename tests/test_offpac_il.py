@@ -41,7 +41,7 @@ def small_learner(seed: int, state_dim=3, action_dim=2, dtype=np.float64, **over
 
 def away_from_kinks(*caches, margin=1e-2) -> bool:
     """True when every hidden pre-activation is at least `margin` from the ReLU kink, so
-    that finite-difference steps of 1e-4 cannot cross it (GUIDE 3, cs231n)."""
+    that finite-difference steps of 1e-4 cannot cross it (as in cs231n's checks)."""
     for cache in caches:
         for activation in cache.activations:
             pre_activation = np.where(activation > 0, activation, activation / 0.01)
@@ -160,7 +160,7 @@ def test_policy_gradient_check_catches_a_wrong_gradient():
 
 
 # ---------------------------------------------------------------------------------------
-# The critic's targets t (Eq. 17-18) and the termination treatments (GUIDE 2).
+# The critic's targets t (Eq. 17-18) and the termination treatments.
 # ---------------------------------------------------------------------------------------
 
 
