@@ -10,6 +10,7 @@ import os
 import sys
 from pathlib import Path
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 # `python -m pytest` puts the working directory on sys.path, the bare `pytest` script
@@ -35,3 +36,13 @@ settings.register_profile(
     suppress_health_check=[HealthCheck.too_slow],
 )
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+
+@pytest.fixture(scope="session")
+def hopper_demos(tmp_path_factory) -> Path:
+    """One sparse Hopper-v4 trajectory from the shipped expert, for command-line tests."""
+    import expert
+
+    path = tmp_path_factory.mktemp("demos") / "hopper.npz"
+    expert.write_demos(path, expert.make_demos("Hopper-v4", 1, "sparse", seed=0))
+    return path

@@ -4,15 +4,13 @@ definition; the command line end to end on Hopper-v4 with tiny networks; resume.
 
 from __future__ import annotations
 
-import csv
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 from gradcheck import assert_gradient_close, numerical_gradient
+from helpers import read_rows, run_script
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
@@ -24,7 +22,6 @@ from test_nets import FD_FLOOR
 from test_offpac_il import OBJECTIVE_EPS, OBJECTIVE_TOL, away_from_kinks
 
 import baselines
-import expert
 import nets
 import offpac_il
 
@@ -428,29 +425,11 @@ RUN_FILES = ("config.json", "progress.csv", "diagnostics.csv", "checkpoint.npz")
 POLICIES = ("policy_best.npz", "policy_final.npz")
 
 
-@pytest.fixture(scope="module")
-def hopper_demos(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("demos") / "hopper.npz"
-    expert.write_demos(path, expert.make_demos("Hopper-v4", 1, "sparse", seed=0))
-    return path
-
-
 def run_cli(*args, check=True):
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "baselines.py"), *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=600,
-    )
-    if check and result.returncode != 0:
-        raise AssertionError(f"exit {result.returncode}: {result.stderr}")
-    return result
+    return run_script("baselines.py", *args, check=check)
 
 
-def read_csv(path: Path, drop=("wall_seconds",)) -> list[dict]:
-    with open(path) as f:
-        return [{k: v for k, v in row.items() if k not in drop} for row in csv.DictReader(f)]
+read_csv = read_rows
 
 
 @pytest.fixture(scope="module")

@@ -3,7 +3,6 @@ learner computes them, the targets, and the command line end to end."""
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import subprocess
 import sys
@@ -12,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from gradcheck import assert_gradient_close, numerical_gradient
+from helpers import read_rows, run_script
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
-import expert
 import offpac_il
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -227,29 +226,12 @@ TINY_RUN = [
 ]
 
 
-@pytest.fixture(scope="module")
-def hopper_demos(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("demos") / "hopper.npz"
-    expert.write_demos(path, expert.make_demos("Hopper-v4", 1, "sparse", seed=0))
-    return path
-
-
 def run_cli(*args, check=True):
-    result = subprocess.run(
-        [sys.executable, str(ROOT / "offpac_il.py"), *map(str, args)],
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-        timeout=600,
-    )
-    if check and result.returncode != 0:
-        raise AssertionError(f"exit {result.returncode}: {result.stderr}")
-    return result
+    return run_script("offpac_il.py", *args, check=check)
 
 
-def read_progress(run_dir: Path, drop=("wall_seconds",)) -> list[dict]:
-    with open(run_dir / "progress.csv") as f:
-        return [{k: v for k, v in row.items() if k not in drop} for row in csv.DictReader(f)]
+def read_progress(run_dir: Path) -> list[dict]:
+    return read_rows(run_dir / "progress.csv")
 
 
 def test_command_line_run_writes_its_files(tmp_path, hopper_demos):

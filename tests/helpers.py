@@ -1,0 +1,30 @@
+"""Helpers shared by the command-line tests of the learner and the baselines."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def run_script(script: str, *args, check: bool = True) -> subprocess.CompletedProcess:
+    """python ROOT/script args..., from the repository root; raises if check and it fails."""
+    result = subprocess.run(
+        [sys.executable, str(ROOT / script), *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
+    if check and result.returncode != 0:
+        raise AssertionError(f"exit {result.returncode}: {result.stderr}")
+    return result
+
+
+def read_rows(path: Path, drop=("wall_seconds",)) -> list[dict]:
+    """A CSV file's rows as dicts, without the columns in `drop` (wall time differs)."""
+    with open(path) as f:
+        return [{k: v for k, v in row.items() if k not in drop} for row in csv.DictReader(f)]
