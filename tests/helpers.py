@@ -28,3 +28,20 @@ def read_rows(path: Path, drop=("wall_seconds",)) -> list[dict]:
     """A CSV file's rows as dicts, without the columns in `drop` (wall time differs)."""
     with open(path) as f:
         return [{k: v for k, v in row.items() if k not in drop} for row in csv.DictReader(f)]
+
+
+def interrupted_after(episodes: int):
+    """offpac_il.run_episode, raising as a kill would once `episodes` training episodes
+    ran (training episodes are the ones given a replay buffer or rollout to fill)."""
+    import offpac_il
+
+    original, calls = offpac_il.run_episode, {"n": 0}
+
+    def run_episode(*args, **kwargs):
+        if len(args) >= 6 or kwargs.get("replay") is not None:
+            calls["n"] += 1
+            if calls["n"] > episodes:
+                raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    return run_episode

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from gradcheck import assert_gradient_close, numerical_gradient
-from helpers import read_rows, run_script
+from helpers import interrupted_after, read_rows, run_script
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
@@ -484,20 +484,6 @@ def test_gail_and_bc_gail_command_lines_write_their_files(tmp_path, hopper_demos
     bc_final = nets.load_arrays(bc_run / "policy_final.npz")
     for key, value in policy.state("policy").items():
         np.testing.assert_array_equal(value, bc_final[key])
-
-
-def interrupted_after(episodes: int):
-    """offpac_il.run_episode, raising as a kill would once `episodes` training episodes ran."""
-    original, calls = offpac_il.run_episode, {"n": 0}
-
-    def run_episode(*args, **kwargs):
-        if len(args) >= 6 or kwargs.get("replay") is not None:  # training episodes
-            calls["n"] += 1
-            if calls["n"] > episodes:
-                raise KeyboardInterrupt
-        return original(*args, **kwargs)
-
-    return run_episode
 
 
 def tiny_gail_config(run_dir: Path, demos: Path, seed=0) -> baselines.GAILConfig:

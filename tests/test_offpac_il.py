@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from gradcheck import assert_gradient_close, numerical_gradient
-from helpers import read_rows, run_script
+from helpers import interrupted_after, read_rows, run_script
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
@@ -254,20 +254,6 @@ def test_command_line_run_writes_its_files(tmp_path, hopper_demos):
     # A second start in the same directory is refused rather than overwriting the run.
     again = run_cli(*TINY_RUN, "--demos", hopper_demos, "--run-dir", run_dir, check=False)
     assert again.returncode == 2 and "--resume" in again.stderr
-
-
-def interrupted_after(episodes: int):
-    """A run_episode that raises, as a kill would, once `episodes` training episodes ran."""
-    original, calls = offpac_il.run_episode, {"n": 0}
-
-    def run_episode(*args, **kwargs):
-        if len(args) >= 6 or kwargs.get("replay") is not None:  # training episodes
-            calls["n"] += 1
-            if calls["n"] > episodes:
-                raise KeyboardInterrupt
-        return original(*args, **kwargs)
-
-    return run_episode
 
 
 def tiny_config(run_dir: Path, demos: Path, seed=0) -> offpac_il.Config:
