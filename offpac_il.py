@@ -100,6 +100,8 @@ class Config:
     """Standardise states by the demonstrations' mean and std (+1e-3)."""
     critic_reg: float = 0.0
     """Weight of D_JS(q_nu(s,a) || q_nu'(s,a)), the submitted version's critic regulariser."""
+    critic_grad_penalty: float = 0.0
+    """Weight of 1/2 mean ||dx/d[s,a]||^2 on the critic's logit (DAC's stabiliser; paper: 0)."""
     policy_expert_states: float = 0.0
     """Fraction of the policy step's states drawn from the demonstrations (paper: 0)."""
 
@@ -139,6 +141,8 @@ def check_config(config: Config) -> None:
             raise UserError(f"--{name.replace('_', '-')} must be at least 1")
     if not 0.0 <= config.gamma < 1.0:
         raise UserError("--gamma must lie in [0, 1)")
+    if config.critic_reg < 0 or config.critic_grad_penalty < 0:
+        raise UserError("--critic-reg and --critic-grad-penalty must be at least 0")
     if not 0.0 <= config.policy_expert_states <= 1.0:
         raise UserError("--policy-expert-states must lie in [0, 1]")
 
@@ -374,11 +378,17 @@ def critic_targets(
 
 
 def critic_loss_and_grads(
-    learner: Learner, batch: Triplets, t: np.ndarray, n_expert: int, critic_reg: float
+    learner: Learner,
+    batch: Triplets,
+    t: np.ndarray,
+    n_expert: int,
+    critic_reg: float,
+    grad_penalty: float = 0.0,
 ):
     """Objective (18) and its gradient w.r.t. every critic parameter, for fixed targets t.
 
     batch: n_expert expert triplets followed by replay triplets; t: (rows, 1).
+    critic_reg, grad_penalty: weights of the two optional stabilisers (Config).
     Returns (loss, grads, critic cache).
     """
     _, cache = learner.critic.forward((batch.states, batch.actions))
@@ -394,6 +404,14 @@ def critic_loss_and_grads(
         loss += critic_reg * nets.js_divergence(x, q_target).mean()
         d_x += critic_reg * nets.js_divergence_grad(x, q_target) / len(x)
     _, grads = learner.critic.backward(d_x, cache, through_head=False, input_grads=False)
+    if grad_penalty > 0:
+        # Not in the paper: keeps x smooth in (s, a) on the batch's rows, so that the
+        # action gradient of gradient (6) cannot come from a sharp ridge the critic drew
+        # between the few expert pairs and the learner's nearby ones.
+        penalty, penalty_grads = learner.critic.input_gradient_penalty(cache)
+        loss += grad_penalty * penalty
+        for name, grad in penalty_grads.items():
+            grads[name] += grad_penalty * grad
     return float(loss), grads, cache
 
 
@@ -415,7 +433,9 @@ def critic_step(
     )
     from_replay = np.arange(len(batch.states)) >= n
     t = critic_targets(learner, batch, from_replay, config, rng)[:, None]  # (2n, 1)
-    loss, grads, cache = critic_loss_and_grads(learner, batch, t, n, config.critic_reg)
+    loss, grads, cache = critic_loss_and_grads(
+        learner, batch, t, n, config.critic_reg, config.critic_grad_penalty
+    )
     learner.critic_optimizer.step(learner.critic.params, grads, lr)
     nets.soft_update(learner.target_critic, learner.critic, config.tau)
     q = cache.output[:, 0]

@@ -205,6 +205,67 @@ def test_mlp_gradients(head, batch, d_in, hidden, d_out, seed):
     np.testing.assert_array_equal(d_x_only, d_x)
 
 
+@given(
+    batch=batches,
+    blocks=st.lists(widths, min_size=1, max_size=2),
+    hidden=st.lists(widths, min_size=1, max_size=3),
+    seed=seeds,
+)
+def test_input_gradient_penalty(batch, blocks, hidden, seed):
+    """P = 1/2 mean ||dx/du||^2: its value from `backward`, its gradient from finite
+    differences of P itself (which runs a forward and a backward pass per step)."""
+    rng = np.random.default_rng(seed)
+    mlp = nets.MLP.create([sum(blocks), *hidden, 1], "sigmoid", rng, dtype=np.float64)
+    for i in range(mlp.n_layers):
+        mlp.params[f"b{i}"][...] = rng.normal(scale=0.5, size=mlp.sizes[i + 1])
+    x = tuple(rng.normal(size=(batch, width)) for width in blocks)
+    cache = away_from_kink(mlp, x)
+    penalty, grads = mlp.input_gradient_penalty(cache)
+
+    d_x, _ = mlp.backward(np.ones((batch, 1)), cache, through_head=False)
+    input_gradient = np.concatenate(d_x, axis=1) if isinstance(d_x, tuple) else d_x
+    assert penalty == pytest.approx(0.5 * (input_gradient**2).sum() / batch, rel=1e-12)
+
+    def f():
+        return mlp.input_gradient_penalty(mlp.forward(x)[1])[0]
+
+    assert set(grads) == {f"W{i}" for i in range(mlp.n_layers)}  # biases: zero, below
+    for key, value in mlp.params.items():
+        numeric = numerical_gradient(f, value)
+        if key in grads:
+            assert_gradient_close(grads[key], numeric, TOL, f"penalty/{key}", floor=FD_FLOOR)
+        else:
+            assert np.abs(numeric).max() < 1e-8, key
+
+
+def test_input_gradient_penalty_check_catches_ignored_slopes(monkeypatch):
+    """The check above fails for a penalty gradient that forgets the leaky-ReLU slopes."""
+    rng = np.random.default_rng(3)
+    mlp = nets.MLP.create([3, 5, 4, 1], "sigmoid", rng, dtype=np.float64)
+    x = rng.normal(size=(6, 3))
+    _, cache = mlp.forward(x)
+    assert min_abs_preactivation(cache) > KINK_MARGIN  # this seed's sample is clean
+    right = mlp.input_gradient_penalty(cache)[1]
+
+    def f():
+        return mlp.input_gradient_penalty(mlp.forward(x)[1])[0]
+
+    numeric = numerical_gradient(f, mlp.params["W1"])
+    assert_gradient_close(right["W1"], numeric, TOL, floor=FD_FLOOR)
+    monkeypatch.setattr(nets, "LEAKY_SLOPE", 1.0)  # every unit treated as on
+    wrong = mlp.input_gradient_penalty(cache)[1]
+    with pytest.raises(AssertionError):
+        assert_gradient_close(wrong["W1"], numeric, TOL, floor=FD_FLOOR)
+
+
+def test_input_gradient_penalty_needs_one_logit_and_a_hidden_layer():
+    rng = np.random.default_rng(0)
+    for sizes in ([3, 4, 2], [3, 1]):
+        mlp = nets.MLP.create(sizes, "sigmoid", rng, dtype=np.float64)
+        with pytest.raises(ValueError, match="one output and a hidden layer"):
+            mlp.input_gradient_penalty(mlp.forward(np.zeros((2, 3)))[1])
+
+
 @st.composite
 def block_inputs(draw):
     """Input blocks for an MLP: G shared rows serving N = G * K rows, as in the policy

@@ -63,8 +63,13 @@ def random_triplets(rng, n, state_dim=3, action_dim=2, terminal_fraction=0.0):
 # ---------------------------------------------------------------------------------------
 
 
-@given(seed=st.integers(0, 2**16), n=st.integers(1, 5), critic_reg=st.sampled_from([0.0, 0.7]))
-def test_critic_objective_gradient_matches_finite_differences(seed, n, critic_reg):
+@given(
+    seed=st.integers(0, 2**16),
+    n=st.integers(1, 5),
+    critic_reg=st.sampled_from([0.0, 0.7]),
+    grad_penalty=st.sampled_from([0.0, 0.3]),
+)
+def test_critic_objective_gradient_matches_finite_differences(seed, n, critic_reg, grad_penalty):
     learner, _, rng = small_learner(seed)
     batch = random_triplets(rng, 2 * n)
     t = rng.uniform(0.0, 1.0, (2 * n, 1))
@@ -72,9 +77,9 @@ def test_critic_objective_gradient_matches_finite_differences(seed, n, critic_re
     assume(away_from_kinks(learner.critic.forward((batch.states, batch.actions))[1]))
 
     def loss():
-        return offpac_il.critic_loss_and_grads(learner, batch, t, n, critic_reg)[0]
+        return offpac_il.critic_loss_and_grads(learner, batch, t, n, critic_reg, grad_penalty)[0]
 
-    _, grads, _ = offpac_il.critic_loss_and_grads(learner, batch, t, n, critic_reg)
+    _, grads, _ = offpac_il.critic_loss_and_grads(learner, batch, t, n, critic_reg, grad_penalty)
     assert set(grads) == set(learner.critic.params)
     for name, param in learner.critic.params.items():
         assert_gradient_close(
