@@ -32,6 +32,7 @@ seeds are pooled into their mean with a min-max band:
 Command line:
 
     python experiments.py sweep quick|full [--runs DIR] [--workers N] [--scheduler ADDRESS]
+                                           [--methods BC GAIL ...] [--envs Hopper-v4 ...]
     python experiments.py figures quick|full [--runs DIR] [--out DIR]
     python experiments.py curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination]
 """
@@ -463,6 +464,22 @@ def missing_support(spec: RunSpec, _helps: dict | None = None) -> str | None:
     return None
 
 
+def select(
+    specs: Sequence[RunSpec], methods: Iterable[str] = (), envs: Iterable[str] = ()
+) -> list[RunSpec]:
+    """The specs of the given methods and environments (empty: all), with the runs they
+    start from (BC+GAIL keeps its BC run), in plan order: one part of a plan, run alone."""
+    methods, envs = set(methods), set(envs)
+    chosen = {
+        spec.run_dir
+        for spec in specs
+        if (not methods or spec.labels.get("method") in methods)
+        and (not envs or spec.labels.get("env") in envs)
+    }
+    chosen |= {need for spec in specs if spec.run_dir in chosen for need in spec.needs}
+    return [spec for spec in specs if spec.run_dir in chosen]
+
+
 def split_runnable(specs: Iterable[RunSpec]) -> tuple[list[RunSpec], dict[str, list[str]]]:
     """(specs that can run, {method: reason} for the methods that cannot)."""
     runnable, skipped, helps = [], {}, {}
@@ -883,6 +900,15 @@ def main(argv=None) -> int:
     run.add_argument("--runs", help="root of the run directories (default: runs/MODE...)")
     run.add_argument("--workers", type=int, help="runs at a time in the local pool")
     run.add_argument("--scheduler", help="address of a Dask scheduler to run on instead")
+    run.add_argument(
+        "--methods",
+        nargs="+",
+        default=[],
+        choices=list(METHODS),
+        metavar="METHOD",
+        help="only these methods (default: all)",
+    )
+    run.add_argument("--envs", nargs="+", default=[], help="only these tasks (default: all)")
     figures = sub.add_parser("figures", help="Figures 2-4 (PNG and CSV) from the runs")
     figures.add_argument("mode", choices=("quick", "full"))
     figures.add_argument("--runs", help="root of the run directories")
@@ -904,7 +930,8 @@ def main(argv=None) -> int:
         for name, path in draw_figures(runs_root, args.out or DEFAULT_FIGURES[args.mode]).items():
             print(f"{name}: {path or 'skipped (no finished runs for it)'}")
         return 0
-    specs, skipped = split_runnable(plan(args.mode == "quick", runs_root))
+    chosen = select(plan(args.mode == "quick", runs_root), args.methods, args.envs)
+    specs, skipped = split_runnable(chosen)
     for method, reason in skipped.items():
         print(f"skipping {method}: {reason}")
     if args.scheduler:

@@ -191,6 +191,17 @@ def test_plan_covers_the_figures_once_each():
     assert {s.labels["seed"] for s in full} == {0, 1, 2}
 
 
+def test_select_keeps_a_part_of_the_plan_and_what_it_starts_from():
+    full = experiments.plan(False, "runs/f")
+    bc = experiments.select(full, ["BC"], ["Hopper-v4"])
+    assert bc and {(s.labels["method"], s.labels["env"]) for s in bc} == {("BC", "Hopper-v4")}
+    both = experiments.select(full, ["BC+GAIL"], ["Hopper-v4"])
+    assert {s.labels["method"] for s in both} == {"BC", "BC+GAIL"}
+    assert all(n in {s.run_dir for s in both} for s in both for n in s.needs)
+    assert [s.run_dir for s in both] == [s.run_dir for s in full if s in both]  # plan order
+    assert experiments.select(full) == full
+
+
 def test_missing_support_names_what_is_missing(tmp_path):
     cli = script(tmp_path, "cli.py", "")
     assert experiments.missing_support(RunSpec(cli, ("--init", "x"), "r")) is None
