@@ -110,7 +110,7 @@ class Config:
     """Fraction of the policy step's states drawn from the demonstrations (paper: 0)."""
 
     # The paper's ablations (Sec. 5.3, Figure 4), switches of this one learner; the
-    # defaults are Ours. See "Ablations" below for what each switch changes and why.
+    # defaults are Ours. What each switch changes, and why: the comment above `Learner`.
     on_policy: bool = False
     """Ours+OnP: empty the replay buffer after each episode's updates (only fresh samples)."""
     reward_learning: str = "none"
@@ -364,7 +364,8 @@ class Learner:
             )
             # The log-std head starts at 0 (sigma = 1 at every state), as the Gaussian
             # policies of the paper's GAIL code (openai/imitation) and of baselines.py
-            # do; with Xavier weights it would start at sigma = exp(+-1) by state.
+            # do; with Xavier weights sigma would start at exp of O(1) values that vary
+            # by state (a mean of 1.6 on Hopper's first states).
             policy.params[f"W{policy.n_layers - 1}"][:, action_dim:] = 0.0
         else:
             policy = nets.MLP.create(
