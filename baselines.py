@@ -379,22 +379,19 @@ def discriminator_loss_and_grads(
           = mean_E softplus(-x) + mean_pi softplus(x)
         dL/dx = -sigmoid(-x) / N_E on expert rows,  sigmoid(x) / N_pi on policy rows.
 
+    The learner's reward-learning ablation trains its r_omega with the same loss, so both
+    share one implementation: offpac_il.reward_loss_and_grads(..., "discriminator").
     Returns (loss, grads, {"d_expert", "d_policy"}: mean D on each side).
     """
     n_expert = len(expert_states)
     states = np.concatenate([expert_states, policy_states])  # (N_E + N_pi, dim s)
     actions = np.concatenate([expert_actions, policy_actions])  # (N_E + N_pi, dim A)
-    _, cache = discriminator.forward((states, actions))
-    x = cache.logits  # (N_E + N_pi, 1)
-    x_expert, x_policy = x[:n_expert], x[n_expert:]
-    loss = nets.softplus(-x_expert).mean() + nets.softplus(x_policy).mean()
-    d_x = np.concatenate(
-        [-nets.sigmoid(-x_expert) / n_expert, nets.sigmoid(x_policy) / len(x_policy)]
+    loss, grads, cache = offpac_il.reward_loss_and_grads(
+        discriminator, states, actions, n_expert, "discriminator"
     )
-    _, grads = discriminator.backward(d_x, cache, through_head=False, input_grads=False)
     d = cache.output[:, 0]
     return (
-        float(loss),
+        loss,
         grads,
         {"d_expert": float(d[:n_expert].mean()), "d_policy": float(d[n_expert:].mean())},
     )

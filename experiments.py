@@ -44,6 +44,7 @@ import csv
 import io
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -65,10 +66,11 @@ LOG_FILE = "sweep.log"  # the run's stdout and stderr, one block per attempt
 # Methods: how each compared method and ablation is launched.
 # ----------------------------------------------------------------------------------------
 
-# name -> (script, the arguments that select the method). The baselines and the ablation
-# flags are issue 6's; `missing_support` checks each against the script's --help, so a
-# method whose script or flag does not exist yet is reported and skipped, never faked.
-# Keep these in step with baselines.py and offpac_il.py when they land.
+# name -> (script, the arguments that select the method). The ablations are switches of
+# offpac_il.py (its Config: on_policy, reward_learning, policy_type; Sec. 5.3, Figure 4).
+# `missing_support` checks each against the script's --help, so a method whose script or
+# flag does not exist is reported and skipped, never faked; tests/test_offpac_il.py
+# checks that offpac_il.py accepts every selector here.
 METHODS: dict[str, tuple[str, tuple[str, ...]]] = {
     "Ours": ("offpac_il.py", ()),
     "BC": ("baselines.py", ("bc",)),
@@ -458,7 +460,10 @@ def missing_support(spec: RunSpec, _helps: dict | None = None) -> str | None:
     if not help_text.strip():
         return f"`{shown} --help` lists no options yet"
     flags = {arg.split("=")[0] for arg in spec.args if arg.startswith("--")}
-    unknown = sorted(flag for flag in flags if flag not in help_text.split())
+    # Every --word of the help text: a switch is listed as "[--on-policy | --no-on-policy]"
+    # and "--on-policy, --no-on-policy", so split words would carry brackets and commas.
+    listed = set(re.findall(r"--[\w-]+", help_text))
+    unknown = sorted(flag for flag in flags if flag not in listed)
     if unknown:
         return f"{spec.script} has no {', '.join(unknown)} yet"
     return None

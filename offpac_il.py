@@ -15,6 +15,10 @@ The method in four lines (Algorithm 1):
        critic's action Jacobian, averaged over 128 noise samples per replay state.
 No reward is ever learned: q itself encodes "expert-like now and later" (Sec. 3.1.3).
 
+The paper's ablations (Sec. 5.3, Figure 4) are switches of the same code, off by default:
+--on-policy (Ours+OnP), --reward-learning discriminator|entropy (Ours+IRL(D), Ours+IRL(E)),
+--policy-type gaussian|deterministic (Ours+GP, Ours+DP); see "The learner" below.
+
 Run `python offpac_il.py --env Hopper-v4`; `--help` lists every setting.
 """
 
@@ -105,6 +109,15 @@ class Config:
     policy_expert_states: float = 0.0
     """Fraction of the policy step's states drawn from the demonstrations (paper: 0)."""
 
+    # The paper's ablations (Sec. 5.3, Figure 4), switches of this one learner; the
+    # defaults are Ours. What each switch changes, and why: the comment above `Learner`.
+    on_policy: bool = False
+    """Ours+OnP: empty the replay buffer after each episode's updates (only fresh samples)."""
+    reward_learning: str = "none"
+    """Ours+IRL(D)/(E): learn r_omega by objective (2) (discriminator) or (8) (entropy)."""
+    policy_type: str = "bounded"
+    """bounded: tanh(PN(s, z)) (Ours); gaussian (Ours+GP); deterministic, fixed z (Ours+DP)."""
+
     eval_every: int = 5_000
     """Interactions between evaluations."""
     eval_episodes: int = 5
@@ -119,14 +132,20 @@ class Config:
 
 TERMINATIONS = ("bootstrap", "absorbing", "zero")
 SAMPLINGS = ("sparse", "dense")
+REWARD_LEARNINGS = ("none", "discriminator", "entropy")
+POLICY_TYPES = ("bounded", "gaussian", "deterministic")
 
 
 def check_config(config: Config) -> None:
     """Refuse settings that cannot work, with one clear message."""
-    if config.termination not in TERMINATIONS:
-        raise UserError(f"--termination must be one of {', '.join(TERMINATIONS)}")
-    if config.sampling not in SAMPLINGS:
-        raise UserError(f"--sampling must be one of {', '.join(SAMPLINGS)}")
+    for name, choices in (
+        ("termination", TERMINATIONS),
+        ("sampling", SAMPLINGS),
+        ("reward_learning", REWARD_LEARNINGS),
+        ("policy_type", POLICY_TYPES),
+    ):
+        if getattr(config, name) not in choices:
+            raise UserError(f"--{name.replace('_', '-')} must be one of {', '.join(choices)}")
     for name in (
         "total_steps",
         "trajectories",
@@ -237,6 +256,10 @@ class ReplayBuffer:
     def sample(self, rng: np.random.Generator, n: int) -> Triplets:
         return take(self.data, rng.integers(0, self.size, n))
 
+    def clear(self) -> None:
+        """Forget every triplet (the on-policy ablation, after each episode's updates)."""
+        self.size, self.next_index = 0, 0
+
     def state(self) -> dict[str, np.ndarray]:
         return {
             "replay/states": self.data.states,
@@ -273,12 +296,50 @@ def expert_buffer_from(demos: expert.Demos, spaces: Spaces) -> Triplets:
 
 # ----------------------------------------------------------------------------------------
 # The learner: networks, the critic step (18) and the policy step (6).
+#
+# The paper's ablations (Sec. 5.3, Figure 4) are switches of this one code path; with
+# every switch off (the defaults) the run is Ours, draw for draw:
+# - on_policy (Ours+OnP): the replay buffer is emptied after each episode's updates, so
+#   every update samples the latest episode's triplets only (see `train`);
+# - reward_learning (Ours+IRL(D), Ours+IRL(E)): a reward network r_omega, learned by
+#   objective (2) or (8) (`reward_loss_and_grads`), and the critic trained by objective
+#   (15) with P_omega-nu-gamma of Eq. (13) in place of (18) (`critic_targets`);
+# - policy_type (Ours+GP, Ours+DP): a Gaussian policy, or the bounded policy with its
+#   noise input held at one fixed vector (`Learner.policy_forward`).
 # ----------------------------------------------------------------------------------------
+
+# Bounds of the Gaussian policy's log-std, as in SAC's reference implementation (Haarnoja
+# et al., 2018): sigma in [2e-9, 7.4] in [-1, 1] action units. A log-std output outside
+# them is clipped and gets no gradient.
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
+
+
+@dataclass
+class PolicyCache:
+    """What `Learner.policy_backward` needs from `Learner.policy_forward`.
+
+    net: PN's cache. Gaussian policy only: noise (G, Z, dim A), the eps of each row
+    grouped by state; std (G, dim A); inside (G, dim A), 1 where the log-std output lies
+    strictly within its bounds, else 0.
+    """
+
+    net: nets.Cache
+    noise: np.ndarray | None = None
+    std: np.ndarray | None = None
+    inside: np.ndarray | None = None
 
 
 @dataclass
 class Learner:
-    """pi_theta = tanh(PN([s, z])) and q_nu = sigmoid(QN([s, a])), with target q_nu'."""
+    """pi_theta = tanh(PN([s, z])) and q_nu = sigmoid(QN([s, a])), with target q_nu'.
+
+    policy_type: "bounded" is the above (Sec. 3.2). "gaussian" (Ours+GP, Figure 1a):
+    PN([s]) = [mu, log sigma] with an identity head, a = mu + sigma * eps, eps ~ N(0, I),
+    unbounded; `noise_dim` is then dim A. "deterministic" (Ours+DP): tanh(PN([s, z_0]))
+    with z_0 = `fixed_noise`, whatever noise the caller draws.
+    reward, reward_optimizer: r_omega = sigmoid(RN([s, a])), QN's size, and its RMSProp,
+    when a reward is learned (reward_learning != "none"); else None.
+    """
 
     policy: nets.MLP
     critic: nets.MLP
@@ -286,36 +347,125 @@ class Learner:
     noise_dim: int
     policy_optimizer: nets.RMSProp = field(default_factory=nets.RMSProp)
     critic_optimizer: nets.RMSProp = field(default_factory=nets.RMSProp)
+    policy_type: str = "bounded"
+    fixed_noise: np.ndarray | None = None  # (dim z,): Ours+DP's z_0
+    reward: nets.MLP | None = None
+    reward_optimizer: nets.RMSProp | None = None
 
     @classmethod
     def create(cls, state_dim, noise_dim, action_dim, config: Config, rng, dtype=np.float32):
-        policy = nets.MLP.create(
-            [state_dim + noise_dim, *config.policy_hidden, action_dim], "tanh", rng, dtype
-        )
+        """The networks, drawn from `rng` in a fixed order: PN, QN, then (if any) the reward
+        network and z_0. So at one seed every ablation but Ours+GP starts from Ours' PN
+        and QN."""
+        if config.policy_type == "gaussian":
+            noise_dim = action_dim  # eps enters after PN (Figure 1a), one per action component
+            policy = nets.MLP.create(
+                [state_dim, *config.policy_hidden, 2 * action_dim], "identity", rng, dtype
+            )
+            # The log-std head starts at 0 (sigma = 1 at every state), as the Gaussian
+            # policies of the paper's GAIL code (openai/imitation) and of baselines.py
+            # do; with Xavier weights sigma would start at exp of O(1) values that vary
+            # by state (a mean of 1.6 on Hopper's first states).
+            policy.params[f"W{policy.n_layers - 1}"][:, action_dim:] = 0.0
+        else:
+            policy = nets.MLP.create(
+                [state_dim + noise_dim, *config.policy_hidden, action_dim], "tanh", rng, dtype
+            )
         critic = nets.MLP.create(
             [state_dim + action_dim, *config.critic_hidden, 1], "sigmoid", rng, dtype
         )
-        return cls(
+        learner = cls(
             policy,
             critic,
             critic.copy(),
             noise_dim,
             nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps),
             nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps),
+            config.policy_type,
         )
+        if config.reward_learning != "none":
+            learner.reward = nets.MLP.create(
+                [state_dim + action_dim, *config.critic_hidden, 1], "sigmoid", rng, dtype
+            )
+            learner.reward_optimizer = nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps)
+        if config.policy_type == "deterministic":
+            # Ours+DP, "a deterministic policy with fixed input noises" (Sec. 5.3): we
+            # read it as Ours' PN with P_z replaced by a point mass at one draw
+            # z_0 ~ N(0, I), made once per run. Not z = 0: that would make PN's z inputs
+            # dead weights, a different network; with z_0 the network, its inputs'
+            # scale and its parameters are Ours', and only the noise is frozen.
+            learner.fixed_noise = rng.standard_normal(noise_dim).astype(dtype)
+        return learner
+
+    def samples_per_state(self, samples: int) -> int:
+        """Noise rows worth drawing per state: `samples`, or 1 for the deterministic
+        policy, whose rows would all be equal (same mean, `samples` times the work)."""
+        return 1 if self.policy_type == "deterministic" else samples
+
+    def policy_forward(self, states: np.ndarray, noise: np.ndarray):
+        """Actions (N, dim A) for noise rows (N, dim z), `states` (G, dim s) each shared
+        by N/G consecutive rows (G = N: one each); and the cache for `policy_backward`."""
+        if self.policy_type == "gaussian":
+            out, net_cache = self.policy.forward(states)  # (G, 2 dim A): PN once per state
+            a_dim, groups = self.noise_dim, len(out)
+            mean, log_std = out[:, :a_dim], out[:, a_dim:]  # (G, dim A) each
+            std = np.exp(np.clip(log_std, LOG_STD_MIN, LOG_STD_MAX))  # (G, dim A)
+            eps = noise.reshape(groups, -1, a_dim)  # (G, Z, dim A)
+            actions = (mean[:, None, :] + std[:, None, :] * eps).reshape(-1, a_dim)  # (N, dim A)
+            inside = (log_std > LOG_STD_MIN) & (log_std < LOG_STD_MAX)
+            return actions, PolicyCache(net_cache, eps, std, inside.astype(std.dtype))
+        if self.policy_type == "deterministic":
+            noise = np.broadcast_to(self.fixed_noise, noise.shape)  # z_0 for every z
+        actions, net_cache = self.policy.forward((states, noise))  # tanh(PN([s, z]))
+        return actions, PolicyCache(net_cache)
+
+    def policy_backward(self, d_actions: np.ndarray, cache: PolicyCache) -> dict[str, np.ndarray]:
+        """PN's parameter gradients from d_actions = dL/da (N, dim A).
+
+        Gaussian (the reparameterisation of gradient 6): a = mu + sigma * eps with
+        sigma = exp(clip(l)), so da/dmu = 1 and da/dl = sigma * eps inside the bounds
+        (0 outside). A state's mu and l serve its Z rows, so their gradients sum over
+        them: dL/dmu = sum_z dL/da, dL/dl = sum_z dL/da * eps * sigma * inside.
+        """
+        if self.policy_type == "gaussian":
+            d_a = d_actions.reshape(cache.noise.shape)  # (G, Z, dim A)
+            d_mean = d_a.sum(axis=1)  # (G, dim A)
+            d_log_std = (d_a * cache.noise).sum(axis=1) * cache.std * cache.inside  # (G, dim A)
+            d_out = np.concatenate([d_mean, d_log_std], axis=1)  # (G, 2 dim A)
+            return self.policy.backward(d_out, cache.net, input_grads=False)[1]  # identity head
+        # Through tanh and PN; PN's own input needs no gradient.
+        return self.policy.backward(d_actions, cache.net, input_grads=False)[1]
 
     def act(self, states: np.ndarray, noise: np.ndarray) -> np.ndarray:
-        """a = tanh(PN([s, z])) in [-1, 1]. `states` may be shared over the noise rows."""
-        return self.policy.forward((states, noise))[0]
+        """a = pi_theta(s, z) (in [-1, 1] unless Gaussian). `states` may be shared over
+        the noise rows."""
+        return self.policy_forward(states, noise)[0]
+
+    def policy_std(self, states: np.ndarray) -> np.ndarray:
+        """The Gaussian policy's sigma(s) (G, dim A), as it acts (clipped log-std)."""
+        out, _ = self.policy.forward(states)
+        return np.exp(np.clip(out[:, self.noise_dim :], LOG_STD_MIN, LOG_STD_MAX))
+
+    def policy_state(self) -> dict[str, np.ndarray]:
+        """What acting needs: PN's parameters, and z_0 for the deterministic policy (the
+        contents of policy_best.npz and policy_final.npz)."""
+        arrays = self.policy.state("policy")
+        if self.fixed_noise is not None:
+            arrays["policy/fixed_noise"] = self.fixed_noise
+        return arrays
 
     def state(self) -> dict[str, np.ndarray]:
-        return {
-            **self.policy.state("policy"),
+        arrays = {
+            **self.policy_state(),
             **self.critic.state("critic"),
             **self.target_critic.state("target_critic"),
             **self.policy_optimizer.state("policy_rmsprop"),
             **self.critic_optimizer.state("critic_rmsprop"),
         }
+        if self.reward is not None:
+            arrays.update(self.reward.state("reward"))
+            arrays.update(self.reward_optimizer.state("reward_rmsprop"))
+        return arrays
 
     def load_state(self, arrays) -> None:
         self.policy.load_state(arrays, "policy")
@@ -323,6 +473,11 @@ class Learner:
         self.target_critic.load_state(arrays, "target_critic")
         self.policy_optimizer.load_state(arrays, "policy_rmsprop")
         self.critic_optimizer.load_state(arrays, "critic_rmsprop")
+        if self.fixed_noise is not None:
+            self.fixed_noise[...] = arrays["policy/fixed_noise"]
+        if self.reward is not None:
+            self.reward.load_state(arrays, "reward")
+            self.reward_optimizer.load_state(arrays, "reward_rmsprop")
 
 
 # Rows per chunk of the big passes (policy step, critic targets). Measured for the
@@ -351,15 +506,26 @@ def critic_targets(
     config: Config,
     rng: np.random.Generator,
 ) -> np.ndarray:
-    """t = E_z[q_nu'(s', pi(s', z))^gamma], halved for replay rows (Eq. 17-18).
+    """t, the Bernoulli parameter the critic's q_nu(s, a) is matched to, per row.
 
-    The expectation is a mean over `target_samples` noise vectors per next state. At a
-    terminal s' under termination="zero" the continuation q'^gamma is 0; under
-    "bootstrap" the terminal s' is treated like any other; under "absorbing" the next
-    state is the absorbing state, which the critic learns like any other.
-    No gradient flows through t.
+    Ours, objective (18): t = E_z[q_nu'(s', pi(s', z))^gamma], halved for replay rows
+    (the "/2" of Eq. 17-18: objective (8)'s optimal reward, 1 on expert pairs and 1/2 on
+    the learner's, written in as constants).
+
+    With a learned reward (Ours+IRL), objective (15): t = E_{s', a'}[P_omega-nu-gamma(
+    pi_E | s, a, s', a')] with Eq. (13)'s P = r_omega(s, a) q_nu(s', a')^gamma. r_omega
+    depends on (s, a) alone, so t = r_omega(s, a) E_z[q_nu'(s', pi(s', z))^gamma] on every
+    row, expert or replay, and nothing is halved: r_omega takes the place of the constants.
+
+    The expectation is a mean over `target_samples` noise vectors per next state (one
+    for the deterministic policy). At a terminal s' under termination="zero" the
+    continuation q'^gamma is 0 (so t = 0 with or without r_omega); under "bootstrap"
+    the terminal s' is treated like any other; under "absorbing" the next state is the
+    absorbing state, which the critic (and r_omega) learn like any other. q_nu in the
+    target is the target critic q_nu' (App. B). No gradient flows through t, neither to
+    nu nor to omega (r_omega learns from its own objective only).
     """
-    k = config.target_samples
+    k = learner.samples_per_state(config.target_samples)
     noise = rng.standard_normal((len(batch.next_states) * k, learner.noise_dim), np.float32)
 
     def chunk_targets(rows: slice) -> np.ndarray:
@@ -373,8 +539,91 @@ def critic_targets(
     t = np.concatenate(nets.map_chunks(chunk_targets, chunks_of(len(noise) // k, k)))
     if config.termination == "zero":
         t[batch.terminal] = 0.0
-    t[from_replay] *= 0.5  # the "/2" of Eq. (17)-(18): replay pairs earn r = 1/2
+    if learner.reward is None:
+        t[from_replay] *= 0.5  # the "/2" of Eq. (17)-(18): replay pairs earn r = 1/2
+    else:
+        reward, _ = learner.reward.forward((batch.states, batch.actions))  # (rows, 1)
+        t *= reward[:, 0]  # Eq. (13) in (15): r_omega(s, a) E q'(s', a')^gamma
     return t
+
+
+def reward_loss_and_grads(
+    reward: nets.MLP, states: np.ndarray, actions: np.ndarray, n_expert: int, objective: str
+):
+    """The reward network's loss and its gradient w.r.t. every reward parameter.
+
+    r_omega(s, a) = sigmoid(x), x the network's logit: the probability that the expert
+    would take a at s, R_omega = log r_omega (Sec. 3.1.1). Rows: n_expert expert pairs
+    (from B_pi_E), then the learner's pairs (from B_beta: the paper's pi in (2) and (8)
+    is sampled through the behaviour policy beta, as for the critic in Sec. 3.3). Each
+    expectation is the mean over its rows; the loss is the objective's negative.
+
+    "discriminator", objective (2) (Ours+IRL(D)): argmax_omega J(pi_E, R_omega) -
+    J(pi, R_omega). Read literally, with J(pi, R) = E_{rho_pi, pi}[R], that is
+    E_E[log r] - E_pi[log r], which has no maximum (-log r grows without bound as r -> 0
+    on the learner's pairs; max-margin IRL bounds the norm of omega). The paper reads (2)
+    as assigning r = 1 to expert pairs and r = 0 to the learner's (Sec. 3.1.1), which the
+    AIL methods it names do with a discriminator: GAIL (Ho & Ermon 2016, Eq. 17; the same
+    loss as baselines.py's) maximises E_E[log r] + E_pi[log(1 - r)], whose optimum
+    r* = rho_E / (rho_E + rho_pi) is 1 on expert pairs and 0 on the learner's pairs away
+    from them (log r = -inf there: the problem Sec. 3.1.1 points out, which this ablation
+    is to show). From the logit, log r = -softplus(-x) and log(1 - r) = -softplus(x):
+        L = mean_E softplus(-x) + mean_pi softplus(x)
+        dL/dx = -(1 - r) / n_E on expert rows,  r / n_pi on the learner's rows.
+
+    "entropy", objective (8) (Ours+IRL(E)): argmax_omega E_E[p_omega(pi_E|s, a)] +
+    E_pi[H(p_omega(.|s, a))], with p_omega(pi_E|s, a) = r (Sec. 3.1.1) and H the
+    Bernoulli entropy (9). The first term is r itself, not log r, as (8) is written: it
+    is maximal at r = 1 on expert pairs; the entropy is maximal at r = 1/2 on the
+    learner's. With dr/dx = r(1 - r) and dH/dx = -x r(1 - r) (nets.bernoulli_entropy_grad):
+        L = -mean_E r - mean_pi H(r)
+        dL/dx = -r(1 - r) / n_E on expert rows,  x r(1 - r) / n_pi on the learner's rows.
+
+    Returns (loss, grads, cache).
+    """
+    _, cache = reward.forward((states, actions))
+    x = cache.logits  # (n_E + n_pi, 1): r = sigmoid(x)
+    x_expert, x_learner = x[:n_expert], x[n_expert:]
+    n_learner = len(x_learner)
+    if objective == "discriminator":  # objective (2), as a logistic discriminator
+        loss = nets.softplus(-x_expert).mean() + nets.softplus(x_learner).mean()
+        d_x = np.concatenate(
+            [-nets.sigmoid(-x_expert) / n_expert, nets.sigmoid(x_learner) / n_learner]
+        )
+    elif objective == "entropy":  # objective (8), with H of Eq. (9)
+        loss = -nets.sigmoid(x_expert).mean() - nets.bernoulli_entropy(x_learner).mean()
+        d_x = np.concatenate(
+            [
+                -nets.sigmoid_grad(x_expert) / n_expert,
+                -nets.bernoulli_entropy_grad(x_learner) / n_learner,
+            ]
+        )
+    else:
+        raise ValueError(f"unknown reward objective {objective!r}")
+    _, grads = reward.backward(d_x, cache, through_head=False, input_grads=False)
+    return float(loss), grads, cache
+
+
+def reward_step(
+    learner: Learner, batch: Triplets, n_expert: int, config: Config, lr: float
+) -> dict[str, float]:
+    """One RMSProp step of r_omega on objective (2) or (8) (Ours+IRL).
+
+    It uses the critic step's triplets, and QN's optimiser settings and learning rate
+    (the paper gives none for a reward network; ours is QN-sized, so it is trained like
+    QN). It runs before the critic's targets are computed, so each update alternates the
+    three processes of Sec. 1 (b) in order: reward, value, policy.
+    """
+    loss, grads, cache = reward_loss_and_grads(
+        learner.reward, batch.states, batch.actions, n_expert, config.reward_learning
+    )
+    learner.reward_optimizer.step(learner.reward.params, grads, lr)
+    r = cache.output[:, 0]
+    return {
+        "reward_loss": loss,
+        "r_expert": float(r[:n_expert].mean()),
+        "r_replay": float(r[n_expert:].mean()),
+    }
 
 
 def critic_loss_and_grads(
@@ -385,9 +634,16 @@ def critic_loss_and_grads(
     critic_reg: float,
     grad_penalty: float = 0.0,
 ):
-    """Objective (18) and its gradient w.r.t. every critic parameter, for fixed targets t.
+    """Objective (18), or (15), and its gradient w.r.t. every critic parameter, for fixed t.
 
-    batch: n_expert expert triplets followed by replay triplets; t: (rows, 1).
+    Both objectives are D_JS(P_nu(.|s, a) || Bern(t)) with P_nu(pi_E|s, a) = q_nu(s, a)
+    (Eq. 12), averaged over the expert rows and over the replay rows, the two averages
+    added; they differ only in t (`critic_targets`): (18)'s E q'^gamma and its half, or
+    (15)'s r_omega(s, a) E q'^gamma (Eq. 13). With t frozen, the gradient w.r.t. the
+    critic's logit x is dD_JS/dx = 1/2 p(1-p)(logit p - logit m), m = (p + t)/2 (derived
+    in nets.js_divergence_grad), backpropagated through QN.
+
+    batch: n_expert expert triplets followed by as many replay triplets; t: (rows, 1).
     critic_reg, grad_penalty: weights of the two optional stabilisers (Config).
     Returns (loss, grads, critic cache).
     """
@@ -423,7 +679,11 @@ def critic_step(
     lr: float,
     rng: np.random.Generator,
 ) -> dict[str, float]:
-    """One RMSProp step on objective (18), then the target update (Appendix B)."""
+    """One RMSProp step on objective (18), then the target update (Appendix B).
+
+    With a learned reward (Ours+IRL): first a reward step on the same triplets
+    (`reward_step`), then the critic step on objective (15) with the updated r_omega.
+    """
     n = len(expert_batch.states)
     batch = Triplets(  # expert rows first, then replay rows: (2n, ...)
         *(
@@ -431,6 +691,7 @@ def critic_step(
             for f in dataclasses.fields(Triplets)
         )
     )
+    reward_stats = {} if learner.reward is None else reward_step(learner, batch, n, config, lr)
     from_replay = np.arange(len(batch.states)) >= n
     t = critic_targets(learner, batch, from_replay, config, rng)[:, None]  # (2n, 1)
     loss, grads, cache = critic_loss_and_grads(
@@ -439,7 +700,12 @@ def critic_step(
     learner.critic_optimizer.step(learner.critic.params, grads, lr)
     nets.soft_update(learner.target_critic, learner.critic, config.tau)
     q = cache.output[:, 0]
-    return {"critic_loss": loss, "q_expert": float(q[:n].mean()), "q_replay": float(q[n:].mean())}
+    return {
+        "critic_loss": loss,
+        "q_expert": float(q[:n].mean()),
+        "q_replay": float(q[n:].mean()),
+        **reward_stats,
+    }
 
 
 def policy_gradient(learner: Learner, states: np.ndarray, noise: np.ndarray, total_rows: int):
@@ -449,7 +715,7 @@ def policy_gradient(learner: Learner, states: np.ndarray, noise: np.ndarray, tot
     rows of the whole step, over which gradient (6) averages. Returns sums over the
     chunk's rows, so that chunks add up: (grads, loss, sum of q, saturated components).
     """
-    actions, policy_cache = learner.policy.forward((states, noise))  # (B*Z, dim A)
+    actions, policy_cache = learner.policy_forward(states, noise)  # (B*Z, dim A)
     _, critic_cache = learner.critic.forward((states, actions))  # logits (B*Z, 1)
     log_q = nets.log_sigmoid(critic_cache.logits)  # Q = log q, Eq. (10)
     # d(-log q)/dx = -(1 - q), averaged over every (state, noise) row: gradient (6).
@@ -458,8 +724,8 @@ def policy_gradient(learner: Learner, states: np.ndarray, noise: np.ndarray, tot
     (_, d_actions), _ = learner.critic.backward(
         d_x, critic_cache, through_head=False, param_grads=False, input_grads=(False, True)
     )
-    # Through tanh and PN; PN's own input needs no gradient.
-    _, grads = learner.policy.backward(d_actions, policy_cache, input_grads=False)
+    # Through tanh (or the Gaussian's reparameterisation) and PN.
+    grads = learner.policy_backward(d_actions, policy_cache)
     saturated = np.count_nonzero(np.abs(actions) > 0.99)
     return grads, -float(log_q.sum()) / total_rows, float(critic_cache.output.sum()), saturated
 
@@ -493,9 +759,11 @@ def policy_loss_and_grads(learner: Learner, states: np.ndarray, noise: np.ndarra
 def policy_step(
     learner: Learner, replay_states: np.ndarray, config: Config, lr: float, rng: np.random.Generator
 ) -> dict[str, float]:
-    """One RMSProp step on PN by gradient (6), over `noise_samples` z per state."""
+    """One RMSProp step on PN by gradient (6), over `noise_samples` z per state (one for
+    the deterministic policy)."""
     noise = rng.standard_normal(
-        (len(replay_states) * config.noise_samples, learner.noise_dim), np.float32
+        (len(replay_states) * learner.samples_per_state(config.noise_samples), learner.noise_dim),
+        np.float32,
     )
     _, grads, stats = policy_loss_and_grads(learner, replay_states, noise)
     learner.policy_optimizer.step(learner.policy.params, grads, lr)
@@ -546,6 +814,11 @@ def run_episode(
 
     Returns (true return, length). Only `terminated` ends the value chain; a time-limit
     truncation bootstraps like any other step.
+
+    An unbounded (Gaussian) action is clipped to [-1, 1] only on its way to the
+    environment; the replay stores the action as sampled, so the critic sees what the
+    policy chose (out-of-bound actions included), as GAIL's discriminator did in the
+    paper's Gaussian baselines. For tanh actions the clip changes nothing.
     """
     observation, _ = env.reset(seed=seed)
     state = spaces.state(observation)
@@ -553,7 +826,8 @@ def run_episode(
     while not done:
         noise = rng.standard_normal((1, learner.noise_dim), np.float32)
         action = learner.act(state[None], noise)[0]
-        observation, reward, terminated, truncated, _ = env.step(spaces.to_env_action(action))
+        executed = spaces.to_env_action(np.clip(action, -1.0, 1.0))
+        observation, reward, terminated, truncated, _ = env.step(executed)
         next_state = spaces.state(observation)
         episode_return, length, done = episode_return + reward, length + 1, terminated or truncated
         if replay is not None:
@@ -587,7 +861,8 @@ def imitation_diagnostics(learner: Learner, expert_buffer: Triplets, rng) -> dic
     """How the policy and the critic see the expert's own states, at evaluation time.
 
     expert_action_error: mean squared distance between pi(s_E, z) and a_E (in [-1, 1]
-    units); q_at_expert_action / q_at_policy_action: mean q(s_E, a_E) and q(s_E, pi(s_E, z)).
+    units); q_at_expert_action / q_at_policy_action: mean q(s_E, a_E) and q(s_E, pi(s_E, z));
+    policy_std (Gaussian policy only): mean sigma(s_E).
     """
     states = expert_buffer.states
     noise = rng.standard_normal((len(states), learner.noise_dim), np.float32)
@@ -598,6 +873,11 @@ def imitation_diagnostics(learner: Learner, expert_buffer: Triplets, rng) -> dic
         "expert_action_error": float(((actions - expert_buffer.actions) ** 2).mean()),
         "q_at_expert_action": float(q_expert.mean()),
         "q_at_policy_action": float(q_policy.mean()),
+        **(
+            {"policy_std": float(learner.policy_std(states).mean())}
+            if learner.policy_type == "gaussian"
+            else {}
+        ),
     }
 
 
@@ -624,6 +904,19 @@ PROGRESS_FIELDS = (
     "q_at_expert_action",
     "q_at_policy_action",
 )
+# Columns that only an ablation writes, after the others (a default run's file keeps
+# the columns above and nothing else).
+REWARD_FIELDS = ("reward_loss", "r_expert", "r_replay")  # reward learning (Ours+IRL)
+GAUSSIAN_FIELDS = ("policy_std",)  # the Gaussian policy (Ours+GP)
+
+
+def progress_fields(config: Config) -> tuple[str, ...]:
+    """The columns of this run's progress.csv."""
+    return (
+        PROGRESS_FIELDS
+        + (REWARD_FIELDS if config.reward_learning != "none" else ())
+        + (GAUSSIAN_FIELDS if config.policy_type == "gaussian" else ())
+    )
 
 
 @dataclass
@@ -642,8 +935,11 @@ class Progress:
 
 
 def progress_csv(rows: list[dict]) -> str:
+    """PROGRESS_FIELDS, then any other column the rows hold, in their order."""
+    fields = list(PROGRESS_FIELDS)
+    fields += [name for name in (rows[0] if rows else {}) if name not in PROGRESS_FIELDS]
     out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=PROGRESS_FIELDS, lineterminator="\n")
+    writer = csv.DictWriter(out, fieldnames=fields, lineterminator="\n")
     writer.writeheader()
     writer.writerows(rows)
     return out.getvalue()
@@ -756,7 +1052,7 @@ def train(config: Config, resume: bool = False) -> Progress:
                 "train_return": round(float(np.mean(recent_returns)), 2) if recent_returns else "",
                 **{
                     k: float(f"{value[k]:.5g}") if k in value else ""
-                    for k in PROGRESS_FIELDS[8:]
+                    for k in progress_fields(config)[8:]
                     for value in [{**stats, **diagnostics}]
                 },
             }
@@ -764,7 +1060,7 @@ def train(config: Config, resume: bool = False) -> Progress:
             recent_returns.clear()
             if returns.mean() > progress.best_eval_return:
                 progress.best_eval_return = float(returns.mean())
-                nets.save_arrays(run_dir / "policy_best.npz", learner.policy.state("policy"))
+                nets.save_arrays(run_dir / "policy_best.npz", learner.policy_state())
             print(
                 f"eval  {progress.interactions:>8d} steps  return {returns.mean():8.1f}"
                 f" ± {returns.std():6.1f}  score {row['normalized_score']:6.3f}"
@@ -791,6 +1087,17 @@ def train(config: Config, resume: bool = False) -> Progress:
                 learner, expert_buffer, replay, config, progress.interactions, rng
             )
             progress.updates += 1
+        if config.on_policy:
+            # Ours+OnP: the buffer is to hold samples of the current policy only. Once
+            # this episode's updates have moved theta, its triplets are another policy's,
+            # so they go, and the next updates sample the next episode's triplets alone.
+            # Emptying here (not before the episode) keeps exactly Algorithm 1 otherwise:
+            # the same episode, the same number of updates, the same batch sizes (drawn
+            # with replacement from one episode). Within the episode's updates the
+            # triplets are slightly off-policy already, as in any on-policy method that
+            # takes several steps per batch (PPO's epochs). A run that is checkpointed
+            # here saves an empty buffer, which is what it resumes with.
+            replay.clear()
         update_seconds = time.perf_counter() - update_start
         progress.interactions += length
 
@@ -811,7 +1118,7 @@ def train(config: Config, resume: bool = False) -> Progress:
             save_checkpoint(run_dir, learner, replay, progress, rng)
             last_checkpoint = now
 
-    nets.save_arrays(run_dir / "policy_final.npz", learner.policy.state("policy"))
+    nets.save_arrays(run_dir / "policy_final.npz", learner.policy_state())
     return progress
 
 

@@ -213,6 +213,27 @@ def test_missing_support_names_what_is_missing(tmp_path):
         [RunSpec(cli, (), "a", {"method": "A"}), RunSpec(cli, ("--x",), "b", {"method": "B"})]
     )
     assert [s.run_dir for s in runnable] == ["a"] and set(skipped) == {"B"}
+    # A switch is listed as "[--on-policy | --no-on-policy]" and "--on-policy, --no-...".
+    switch = tmp_path / "switch.py"
+    switch.write_text(
+        "import argparse\n"
+        "parser = argparse.ArgumentParser()\n"
+        "parser.add_argument('--on-policy', action=argparse.BooleanOptionalAction)\n"
+        "parser.parse_args()\n"
+    )
+    assert experiments.missing_support(RunSpec(switch, ("--on-policy",), "r")) is None
+    assert experiments.missing_support(RunSpec(switch, ("--on",), "r")) is not None
+
+
+def test_every_method_is_supported_by_its_script():
+    """METHODS and the scripts' flags agree: no method of Figures 2-4 would be skipped."""
+    specs = [
+        experiments.method_spec(
+            m, "runs/x", env="Hopper-v4", seed=0, trajectories=4, sampling="sparse"
+        )
+        for m in experiments.METHODS
+    ]
+    assert experiments.split_runnable(specs)[1] == {}
 
 
 # ----------------------------------------------------------------------------------------

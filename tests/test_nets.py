@@ -502,6 +502,50 @@ def test_log_sigmoid(x):
 
 
 # ----------------------------------------------------------------------------------------
+# The Bernoulli entropy (objective 8 of the reward-learning ablation) and p(1 - p).
+# ----------------------------------------------------------------------------------------
+
+
+@given(x=st.lists(st.floats(-6.0, 6.0), min_size=1, max_size=8))
+def test_sigmoid_grad(x):
+    """Within +/-6, as for the JS gradient: beyond, p(1-p) is so small that the rounding
+    of p ~ 1 (ulp / eps ~ 1e-10) dominates the finite difference's relative error."""
+    x = np.array(x)
+    p = nets.sigmoid(x)
+    assert_gradient_close(nets.sigmoid_grad(x), p * (1 - p), TOL, "sigmoid_grad/value")
+    numeric = numerical_derivative_elementwise(nets.sigmoid, x)
+    assert_gradient_close(nets.sigmoid_grad(x), numeric, TOL, "sigmoid_grad/fd")
+
+
+@given(x=st.lists(st.floats(-6.0, 6.0), min_size=1, max_size=8))
+def test_bernoulli_entropy_and_its_gradient(x):
+    """H = -p log p - (1-p) log(1-p) and dH/dx = -x p(1-p), against finite differences.
+
+    Logits within +/-6, for the reason given at test_sigmoid_grad (saturation is checked
+    below). Where x ~ 0 the gradient vanishes (H is maximal at p = 1/2), and the
+    difference's relative error with it; |x| > 0.01 keeps the comparison meaningful.
+    """
+    x = np.array(x)
+    p = nets.sigmoid(x)
+    direct = -p * np.log(p) - (1 - p) * np.log1p(-p)
+    assume(np.all(np.isfinite(direct)) and np.all(np.abs(x) > 0.01))
+    assert_gradient_close(nets.bernoulli_entropy(x), direct, TOL, "entropy/value", floor=1e-6)
+    assert np.all(nets.bernoulli_entropy(x) <= np.log(2.0) + 1e-15)
+    numeric = numerical_derivative_elementwise(nets.bernoulli_entropy, x)
+    assert_gradient_close(nets.bernoulli_entropy_grad(x), numeric, TOL, "entropy/fd")
+
+
+def test_bernoulli_entropy_saturates_without_nan():
+    x = np.array([-1000.0, -50.0, 0.0, 50.0, 1000.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        h, g = nets.bernoulli_entropy(x), nets.bernoulli_entropy_grad(x)
+    assert np.all(np.isfinite(h)) and np.all(np.isfinite(g))
+    np.testing.assert_allclose(h[[0, 4]], 0.0, atol=1e-300)
+    assert h[2] == pytest.approx(np.log(2.0))
+
+
+# ----------------------------------------------------------------------------------------
 # RMSProp, the learning-rate schedule, the soft update.
 # ----------------------------------------------------------------------------------------
 
@@ -707,6 +751,8 @@ def test_float32_elementwise_pieces():
         assert nets.head_backward(head, np.ones_like(x), out).dtype == np.float32
     assert nets.js_divergence(x, t).dtype == np.float32
     assert nets.js_divergence_grad(x, t).dtype == np.float32
+    for fn in (nets.sigmoid_grad, nets.bernoulli_entropy, nets.bernoulli_entropy_grad):
+        assert fn(x).dtype == np.float32, fn.__name__
 
 
 # ----------------------------------------------------------------------------------------
@@ -820,3 +866,12 @@ def test_checker_catches_sigmoid_head_missing_a_factor(wrong_derivative, rows, c
     right = nets.head_backward("sigmoid", weights, q)
     wrong = weights * (q if wrong_derivative == "q" else 1 - q)
     assert_separated(right, wrong, numeric, f"sigmoid_head_missing_{wrong_derivative}")
+
+
+@given(x=st.lists(st.floats(-6.0, 6.0), min_size=1, max_size=8))
+def test_checker_catches_entropy_gradient_without_its_sigmoid_factor(x):
+    """dH/dp = -x taken for dH/dx (the chain rule's p(1-p) forgotten) is caught."""
+    x = np.array(x)
+    assume(np.all(np.abs(x) > 0.01))
+    numeric = numerical_derivative_elementwise(nets.bernoulli_entropy, x)
+    assert_separated(nets.bernoulli_entropy_grad(x), -x, numeric, "entropy_without_p(1-p)")

@@ -4,6 +4,8 @@ learner computes them, the targets, and the command line end to end."""
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +16,10 @@ from gradcheck import assert_gradient_close, numerical_gradient
 from helpers import interrupted_after, read_rows, run_script
 from hypothesis import assume, given
 from hypothesis import strategies as st
+from threadpoolctl import threadpool_limits
 
+import experiments
+import nets
 import offpac_il
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -261,9 +266,10 @@ def test_command_line_run_writes_its_files(tmp_path, hopper_demos):
     assert again.returncode == 2 and "--resume" in again.stderr
 
 
-def tiny_config(run_dir: Path, demos: Path, seed=0) -> offpac_il.Config:
+def tiny_config(run_dir: Path, demos: Path, seed=0, extra=()) -> offpac_il.Config:
     args = offpac_il.build_parser().parse_args(
-        TINY_RUN + ["--demos", str(demos), "--seed", str(seed), "--run-dir", str(run_dir)]
+        TINY_RUN
+        + [*map(str, extra), "--demos", str(demos), "--seed", str(seed), "--run-dir", str(run_dir)]
     )
     return offpac_il.Config(
         **{
@@ -335,6 +341,8 @@ def test_kill_and_resume_from_the_command_line(tmp_path, hopper_demos):
         (["--env", "CartPole-v1"], "action space"),
         (["--env", "NoSuchEnv-v0"], "NoSuchEnv-v0"),
         (["--termination", "sometimes"], "--termination"),
+        (["--reward-learning", "gail"], "--reward-learning"),
+        (["--policy-type", "beta"], "--policy-type"),
         (["--resume", "/nonexistent/run"], "/nonexistent/run"),
         (["--bogus-flag"], "--bogus-flag"),
         (["--seed", "many"], "--seed"),
@@ -377,3 +385,422 @@ def test_policy_expert_states_fraction(monkeypatch, fraction):
     offpac_il.update(learner, expert_buffer, replay, config, 0, rng)
     from_expert = (np.abs(seen["states"]) < 50).all(axis=1)  # replay states sit near 100
     assert from_expert.sum() == round(fraction * 8)
+
+
+# ---------------------------------------------------------------------------------------
+# The ablations (Sec. 5.3, Figure 4): every new gradient against finite differences, each
+# check shown to catch a wrong gradient; then each switch end to end.
+# ---------------------------------------------------------------------------------------
+
+OBJECTIVES = ("discriminator", "entropy")
+# The dev profile (1000 examples per test) found small gradient elements (behind units
+# on the leaky side of their ReLU) that missed 5e-5 relative error: ~4e-9 ones by ~1e-12
+# absolute (the difference's rounding), a 9e-7 one by 1.3e-10 (its truncation error,
+# O(eps^2) with the curvature of the whole loss). The checks below hold elements under
+# 1e-5 to 5e-5 * 1e-5 = 5e-10 absolute instead; a wrong gradient is off by O(1) on the
+# large elements (~1e-2 and more), as the wrong-gradient tests show.
+OBJECTIVE_FLOOR = 1e-5
+
+
+def reward_learner(seed: int, objective="entropy", **overrides):
+    """A small float64 learner with a reward network r_omega (QN's hidden sizes)."""
+    learner, config, rng = small_learner(seed, reward_learning=objective, **overrides)
+    assert learner.reward.sizes == learner.critic.sizes and learner.reward.head == "sigmoid"
+    return learner, config, rng
+
+
+def reward_loss_direct(learner, batch, n_expert, objective) -> float:
+    """Objectives (2) (as GAIL's discriminator) and (8), negated, written out in p."""
+    r, _ = learner.reward.forward((batch.states, batch.actions))
+    r_expert, r_learner = r[:n_expert, 0], r[n_expert:, 0]
+    if objective == "discriminator":
+        return -np.log(r_expert).mean() - np.log(1 - r_learner).mean()
+    entropy = -r_learner * np.log(r_learner) - (1 - r_learner) * np.log(1 - r_learner)  # (9)
+    return -r_expert.mean() - entropy.mean()
+
+
+@given(
+    seed=st.integers(0, 2**16),
+    n_expert=st.integers(1, 4),
+    n_learner=st.integers(1, 4),
+    objective=st.sampled_from(OBJECTIVES),
+)
+def test_reward_objective_gradient_matches_finite_differences(seed, n_expert, n_learner, objective):
+    learner, _, rng = reward_learner(seed, objective)
+    batch = random_triplets(rng, n_expert + n_learner)
+    assume(away_from_kinks(learner.reward.forward((batch.states, batch.actions))[1]))
+
+    def loss():
+        return offpac_il.reward_loss_and_grads(
+            learner.reward, batch.states, batch.actions, n_expert, objective
+        )[0]
+
+    np.testing.assert_allclose(
+        loss(), reward_loss_direct(learner, batch, n_expert, objective), rtol=1e-12
+    )
+    _, grads, _ = offpac_il.reward_loss_and_grads(
+        learner.reward, batch.states, batch.actions, n_expert, objective
+    )
+    assert set(grads) == set(learner.reward.params)
+    for name, param in learner.reward.params.items():
+        assert_gradient_close(
+            grads[name],
+            numerical_gradient(loss, param, OBJECTIVE_EPS),
+            OBJECTIVE_TOL,
+            f"objective ({'2' if objective == 'discriminator' else '8'}) d/d{name}",
+            floor=OBJECTIVE_FLOOR,
+        )
+
+
+@pytest.mark.parametrize("objective", OBJECTIVES)
+def test_reward_objective_check_catches_a_wrong_gradient(objective, monkeypatch):
+    """Two common slips, each caught: (2) backpropagated through the sigmoid head once
+    more (dL/dx taken for dL/dr), (8) with dH/dp = -x used as dH/dx."""
+    learner, _, rng = reward_learner(5, objective)
+    batch = random_triplets(rng, 6)
+    args = (learner.reward, batch.states, batch.actions, 3, objective)
+
+    def loss():
+        return offpac_il.reward_loss_and_grads(*args)[0]
+
+    numeric = numerical_gradient(loss, learner.reward.params["W1"], OBJECTIVE_EPS)
+    right = offpac_il.reward_loss_and_grads(*args)[1]["W1"]
+    assert_gradient_close(right, numeric, OBJECTIVE_TOL, floor=OBJECTIVE_FLOOR)
+    if objective == "discriminator":
+        backward = learner.reward.backward
+        monkeypatch.setattr(
+            learner.reward, "backward", lambda d, cache, **kw: backward(d, cache, input_grads=False)
+        )
+    else:
+        monkeypatch.setattr(offpac_il.nets, "bernoulli_entropy_grad", lambda x: -x)
+    wrong = offpac_il.reward_loss_and_grads(*args)[1]["W1"]
+    with pytest.raises(AssertionError):
+        assert_gradient_close(wrong, numeric, OBJECTIVE_TOL, floor=OBJECTIVE_FLOOR)
+
+
+def test_reward_objectives_move_r_where_the_paper_says():
+    """Gradient descent on (2) sends r to 1 on expert pairs and 0 on the learner's; on (8)
+    to 1 on expert pairs and 1/2 on the learner's (Sec. 3.1.1)."""
+    for objective, r_learner in (("discriminator", 0.0), ("entropy", 0.5)):
+        learner, config, rng = reward_learner(6, objective, critic_hidden=(16, 16))
+        batch = random_triplets(rng, 8)
+        batch.states[4:] += 3.0  # the learner's pairs, apart from the expert's
+        optimizer = offpac_il.nets.RMSProp()
+        for _ in range(1500):
+            _, grads, _ = offpac_il.reward_loss_and_grads(
+                learner.reward, batch.states, batch.actions, 4, objective
+            )
+            optimizer.step(learner.reward.params, grads, 1e-2)
+        r, _ = learner.reward.forward((batch.states, batch.actions))
+        np.testing.assert_allclose(r[:4, 0], 1.0, atol=0.05)
+        np.testing.assert_allclose(r[4:, 0], r_learner, atol=0.05)
+
+
+# Objective (15): the critic against Eq. (13)'s target r_omega(s, a) E q'(s', a')^gamma.
+
+
+@pytest.mark.parametrize("termination", offpac_il.TERMINATIONS)
+def test_critic_targets_with_a_learned_reward(termination):
+    """t = r_omega(s, a) mean_k q'(s', a'_k)^gamma on every row (Eq. 13 in 15): no /2."""
+    learner, config, rng = reward_learner(3, termination=termination, target_samples=4)
+    batch = random_triplets(rng, 6, terminal_fraction=0.5)
+    batch.terminal[:2] = [True, False]
+    from_replay = np.arange(6) >= 3
+    t = offpac_il.critic_targets(learner, batch, from_replay, config, np.random.default_rng(9))
+
+    noise = np.random.default_rng(9).standard_normal((6 * 4, 3), np.float32)
+    next_states = np.repeat(batch.next_states, 4, axis=0)
+    q_next, _ = learner.target_critic.forward((next_states, learner.act(next_states, noise)))
+    expected = (q_next[:, 0] ** config.gamma).reshape(6, 4).mean(axis=1)
+    if termination == "zero":
+        expected[batch.terminal] = 0.0
+    r, _ = learner.reward.forward((batch.states, batch.actions))
+    np.testing.assert_allclose(t, r[:, 0] * expected, rtol=1e-10)
+
+
+@given(
+    seed=st.integers(0, 2**16),
+    n=st.integers(1, 4),
+    objective=st.sampled_from(OBJECTIVES),
+    critic_reg=st.sampled_from([0.0, 0.7]),
+)
+def test_critic_objective_15_gradient_matches_finite_differences(seed, n, objective, critic_reg):
+    """Objective (15) w.r.t. every critic parameter, its target (r_omega and nu') frozen."""
+    learner, config, rng = reward_learner(seed, objective, target_samples=3)
+    batch = random_triplets(rng, 2 * n, terminal_fraction=0.2)
+    from_replay = np.arange(2 * n) >= n
+    t = offpac_il.critic_targets(learner, batch, from_replay, config, rng)[:, None]
+    assume(away_from_kinks(learner.critic.forward((batch.states, batch.actions))[1]))
+
+    def loss():
+        return offpac_il.critic_loss_and_grads(learner, batch, t, n, critic_reg)[0]
+
+    q, _ = learner.critic.forward((batch.states, batch.actions))
+    js = offpac_il.nets.js_divergence(np.log(q) - np.log1p(-q), t)[:, 0]
+    expected = js[:n].mean() + js[n:].mean()  # the expert rows' mean + the replay rows'
+    if critic_reg == 0:
+        np.testing.assert_allclose(loss(), expected, rtol=1e-10)
+    _, grads, _ = offpac_il.critic_loss_and_grads(learner, batch, t, n, critic_reg)
+    assert set(grads) == set(learner.critic.params)
+    for name, param in learner.critic.params.items():
+        assert_gradient_close(
+            grads[name],
+            numerical_gradient(loss, param, OBJECTIVE_EPS),
+            OBJECTIVE_TOL,
+            f"objective (15) d/d{name}",
+            floor=OBJECTIVE_FLOOR,
+        )
+
+
+def test_critic_objective_15_check_catches_a_wrong_gradient():
+    """The gradient of (18) (targets 1 and 1/2) taken for (15)'s loss is caught."""
+    learner, config, rng = reward_learner(7)
+    batch = random_triplets(rng, 6)
+    from_replay = np.arange(6) >= 3
+    t15 = offpac_il.critic_targets(learner, batch, from_replay, config, rng)[:, None]
+    learner_18 = dataclasses.replace(learner, reward=None)  # the same networks, targets (18)
+    t18 = offpac_il.critic_targets(learner_18, batch, from_replay, config, rng)[:, None]
+
+    def loss():
+        return offpac_il.critic_loss_and_grads(learner, batch, t15, 3, 0.0)[0]
+
+    numeric = numerical_gradient(loss, learner.critic.params["W0"], OBJECTIVE_EPS)
+    right = offpac_il.critic_loss_and_grads(learner, batch, t15, 3, 0.0)[1]["W0"]
+    wrong = offpac_il.critic_loss_and_grads(learner, batch, t18, 3, 0.0)[1]["W0"]
+    assert_gradient_close(right, numeric, OBJECTIVE_TOL, floor=OBJECTIVE_FLOOR)
+    with pytest.raises(AssertionError):
+        assert_gradient_close(wrong, numeric, OBJECTIVE_TOL, floor=OBJECTIVE_FLOOR)
+
+
+def test_reward_step_comes_before_the_critic_step():
+    """Each update moves r_omega on the critic's triplets, then the critic by (15)."""
+    learner, config, rng = reward_learner(8, objective="discriminator", batch_size=4)
+    before = {k: v.copy() for k, v in learner.reward.params.items()}
+    stats = offpac_il.critic_step(
+        learner, random_triplets(rng, 4), random_triplets(rng, 4), config, 1e-3, rng
+    )
+    assert {"reward_loss", "r_expert", "r_replay", "critic_loss"} <= set(stats)
+    assert all(not np.array_equal(before[k], v) for k, v in learner.reward.params.items())
+
+
+# The Gaussian policy (Ours+GP): a = mu(s) + sigma(s) eps, reparameterised (gradient 6).
+
+
+def gaussian_learner(seed: int, log_std_bias: float | None = None):
+    learner, config, rng = small_learner(seed, policy_type="gaussian")
+    assert learner.noise_dim == 2 and learner.policy.sizes == [3, 6, 5, 4]  # [s] -> mu, l
+    last = learner.policy.n_layers - 1
+    assert not learner.policy.params[f"W{last}"][:, 2:].any()  # sigma = 1 at the start
+    for value in learner.policy.params.values():  # a general point: l depends on s
+        value += 0.3 * rng.standard_normal(value.shape)
+    if log_std_bias is not None:
+        learner.policy.params[f"b{last}"][2:] = log_std_bias
+    return learner, rng
+
+
+@given(seed=st.integers(0, 2**16), states=st.integers(1, 4), noise_samples=st.integers(1, 5))
+def test_gaussian_policy_gradient_matches_finite_differences(seed, states, noise_samples):
+    """Gradient (6) w.r.t. every PN parameter, mean and log-std heads alike."""
+    learner, rng = gaussian_learner(seed)
+    s = rng.standard_normal((states, 3))
+    eps = rng.standard_normal((states * noise_samples, 2))
+    actions, policy_cache = learner.policy_forward(s, eps)
+    critic_cache = learner.critic.forward((np.repeat(s, noise_samples, axis=0), actions))[1]
+    assume(away_from_kinks(policy_cache.net, critic_cache))
+
+    # The action written out: a = mu(s) + exp(l(s)) eps, unbounded.
+    out, _ = learner.policy.forward(s)
+    mean, log_std = np.repeat(out[:, :2], noise_samples, 0), np.repeat(out[:, 2:], noise_samples, 0)
+    # Inside the log-std bounds, away from the clip's kinks (checked separately below).
+    assume(np.all(np.abs(log_std - offpac_il.LOG_STD_MAX) > 1e-2))
+    np.testing.assert_allclose(actions, mean + np.exp(np.minimum(log_std, 2.0)) * eps, rtol=1e-12)
+
+    def loss():
+        return offpac_il.policy_loss_and_grads(learner, s, eps)[0]
+
+    _, grads, _ = offpac_il.policy_loss_and_grads(learner, s, eps)
+    assert set(grads) == set(learner.policy.params)
+    for name, param in learner.policy.params.items():
+        assert_gradient_close(
+            grads[name],
+            numerical_gradient(loss, param, OBJECTIVE_EPS),
+            OBJECTIVE_TOL,
+            f"gaussian gradient (6) d/d{name}",
+            floor=OBJECTIVE_FLOOR,
+        )
+
+
+def test_gaussian_policy_check_catches_a_wrong_gradient():
+    """da/dl = eps (sigma forgotten) instead of sigma eps is caught, on the log-std head."""
+    learner, rng = gaussian_learner(9, log_std_bias=0.8)
+    s, eps = rng.standard_normal((2, 3)), rng.standard_normal((6, 2))
+
+    def loss():
+        return offpac_il.policy_loss_and_grads(learner, s, eps)[0]
+
+    last = f"W{learner.policy.n_layers - 1}"
+    numeric = numerical_gradient(loss, learner.policy.params[last], OBJECTIVE_EPS)
+    right = offpac_il.policy_loss_and_grads(learner, s, eps)[1][last]
+    assert_gradient_close(right, numeric, OBJECTIVE_TOL, floor=OBJECTIVE_FLOOR)
+    assert np.abs(right[:, 2:]).max() > 1e-3  # the log-std head is being checked
+
+    actions, cache = learner.policy_forward(s, eps)
+    _, critic_cache = learner.critic.forward((s, actions))
+    (_, d_actions), _ = learner.critic.backward(
+        -(1 - critic_cache.output) / len(eps), critic_cache, through_head=False
+    )
+    wrong_cache = dataclasses.replace(cache, std=np.ones_like(cache.std))
+    wrong = learner.policy_backward(d_actions, wrong_cache)[last]
+    with pytest.raises(AssertionError):
+        assert_gradient_close(wrong, numeric, OBJECTIVE_TOL, floor=OBJECTIVE_FLOOR)
+
+
+def test_gaussian_log_std_outside_its_bounds_gets_no_gradient():
+    learner, rng = gaussian_learner(10, log_std_bias=offpac_il.LOG_STD_MAX + 5.0)
+    s, eps = rng.standard_normal((2, 3)), rng.standard_normal((4, 2))
+    actions = learner.act(s, eps)
+    mean = np.repeat(learner.policy.forward(s)[0][:, :2], 2, axis=0)
+    np.testing.assert_allclose(actions, mean + np.exp(offpac_il.LOG_STD_MAX) * eps, rtol=1e-12)
+    last = learner.policy.n_layers - 1
+    grads = offpac_il.policy_loss_and_grads(learner, s, eps)[1]
+    assert not grads[f"b{last}"][2:].any() and not grads[f"W{last}"][:, 2:].any()
+    assert grads[f"b{last}"][:2].any()
+
+
+def test_gaussian_actions_are_clipped_only_for_the_environment(hopper_demos):
+    """The environment gets clip(a) (mapped to its bounds); the replay keeps a itself."""
+    import expert
+
+    env = expert.make_env("Hopper-v4")
+    demos = expert.load_demos(hopper_demos, "Hopper-v4")
+    config = offpac_il.Config(policy_type="gaussian", policy_hidden=(4, 4), critic_hidden=(4, 4))
+    spaces = offpac_il.make_spaces(env, demos, config)
+    learner = offpac_il.Learner.create(11, 11, 3, config, np.random.default_rng(0))
+    learner.policy.params["b2"][3:] = 1.0  # sigma = e: most actions out of [-1, 1]
+    executed = []
+    step = env.step
+    env.step = lambda a: executed.append(a) or step(a)
+    replay = offpac_il.ReplayBuffer(2000, 11, 3)
+    _, length = offpac_il.run_episode(env, learner, spaces, np.random.default_rng(1), 0, replay)
+    stored = replay.data.actions[:length]
+    assert np.abs(stored).max() > 1.5  # the critic sees the sampled, unbounded actions
+    np.testing.assert_allclose(np.array(executed), spaces.to_env_action(np.clip(stored, -1, 1)))
+
+
+# The deterministic policy (Ours+DP): tanh(PN([s, z_0])) with one fixed z_0.
+
+
+def test_deterministic_policy_ignores_the_noise_it_is_given():
+    learner, config, rng = small_learner(11, policy_type="deterministic")
+    z0 = learner.fixed_noise
+    assert z0.shape == (3,) and np.abs(z0).max() > 0  # one draw of N(0, I), not zeros
+    s = rng.standard_normal((2, 3))
+    a1 = learner.act(s, rng.standard_normal((2, 3)))
+    a2 = learner.act(s, rng.standard_normal((2, 3)))
+    np.testing.assert_array_equal(a1, a2)
+    np.testing.assert_allclose(a1, learner.policy.forward((s, np.tile(z0, (2, 1))))[0])
+    assert learner.samples_per_state(128) == 1 and small_learner(0)[0].samples_per_state(128) == 128
+    # Its gradient (6) is Ours' with z = z_0, checked like Ours' on every parameter.
+    z = np.tile(z0, (2, 1))
+    actions, policy_cache = learner.policy.forward((s, z))
+    assert away_from_kinks(policy_cache, learner.critic.forward((s, actions))[1])
+
+    def loss():
+        return offpac_il.policy_loss_and_grads(learner, s, z)[0]
+
+    grads = offpac_il.policy_loss_and_grads(learner, s, z)[1]
+    for name, param in learner.policy.params.items():
+        assert_gradient_close(
+            grads[name],
+            numerical_gradient(loss, param, OBJECTIVE_EPS),
+            OBJECTIVE_TOL,
+            f"deterministic gradient (6) d/d{name}",
+            floor=OBJECTIVE_FLOOR,
+        )
+
+
+# The on-policy switch (Ours+OnP): updates see the latest episode's triplets only.
+
+
+@pytest.mark.parametrize("on_policy", [False, True])
+def test_on_policy_updates_see_only_the_latest_episode(
+    tmp_path, hopper_demos, monkeypatch, on_policy
+):
+    lengths, seen = [], []
+    run_episode, update = offpac_il.run_episode, offpac_il.update
+
+    def recording_episode(*args, **kwargs):
+        result = run_episode(*args, **kwargs)
+        if len(args) >= 6:  # a training episode (it fills the replay)
+            lengths.append(result[1])
+        return result
+
+    def recording_update(learner, expert_buffer, replay, *args):
+        seen.append((len(lengths), replay.size))
+        return update(learner, expert_buffer, replay, *args)
+
+    monkeypatch.setattr(offpac_il, "run_episode", recording_episode)
+    monkeypatch.setattr(offpac_il, "update", recording_update)
+    extra = ["--on-policy"] if on_policy else []
+    offpac_il.train(tiny_config(tmp_path / "run", hopper_demos, extra=extra))
+    assert len(lengths) >= 3
+    for episode, size in seen:
+        latest = lengths[episode - 1]
+        assert size == (latest if on_policy else min(sum(lengths[:episode]), 15_000))
+
+
+@pytest.mark.parametrize("method", experiments.ABLATIONS)
+def test_each_ablation_runs_from_the_command_line_and_resumes(
+    method, tmp_path, hopper_demos, monkeypatch
+):
+    """experiments.METHODS' selector of each ablation, on the command line: a few hundred
+    interactions on Hopper-v4, its progress and checkpoint; then the same run killed
+    halfway and resumed from its checkpoint gives the same progress."""
+    script, selector = experiments.METHODS[method]
+    assert script == "offpac_il.py" and selector
+    whole = tmp_path / "whole"
+    run_cli(*TINY_RUN, *selector, "--demos", hopper_demos, "--run-dir", whole)
+    config = offpac_il.Config(**{
+        k: tuple(v) if isinstance(v, list) else v
+        for k, v in json.loads((whole / "config.json").read_text()).items()
+    })  # fmt: skip
+    switches = ("on_policy", "reward_learning", "policy_type")
+    default = offpac_il.Config()
+    assert [getattr(config, k) != getattr(default, k) for k in switches].count(True) == 1
+    rows = read_progress(whole)
+    interactions = [int(r["interactions"]) for r in rows]
+    assert interactions[0] == 0 and interactions[-1] >= 300
+    assert all(n >= 100 * i for i, n in enumerate(interactions))  # one row per 100 or more
+    assert list(rows[0]) == [f for f in offpac_il.progress_fields(config) if f != "wall_seconds"]
+    for row in rows[1:]:  # every column filled and finite after the first updates
+        assert row["updates"] == row["interactions"]
+        assert all(math.isfinite(float(v)) for v in row.values()), row
+    last = rows[-1]
+    checkpoint = nets.load_arrays(whole / "checkpoint.npz")
+    policy = nets.load_arrays(whole / "policy_final.npz")
+    if config.on_policy:
+        assert checkpoint["replay/size_next"].tolist() == [0, 0]  # emptied after updates
+    if config.reward_learning != "none":
+        assert {f"reward/W{i}" for i in range(3)} <= set(checkpoint)
+        assert {f"reward_rmsprop/W{i}" for i in range(3)} <= set(checkpoint)
+        assert float(last["r_expert"]) > float(last["r_replay"])
+    if config.policy_type == "gaussian":
+        assert policy["policy/W2"].shape == (8, 6)  # [s] -> 8 -> 8 -> mu, log sigma
+        assert float(last["policy_std"]) > 0
+    if config.policy_type == "deterministic":
+        assert policy["policy/fixed_noise"].shape == (11,)
+        np.testing.assert_array_equal(
+            policy["policy/fixed_noise"], checkpoint["policy/fixed_noise"]
+        )
+
+    interrupted = tmp_path / "interrupted"
+    with threadpool_limits(limits=1, user_api="blas"):  # as the command line runs
+        with monkeypatch.context() as patch:
+            episodes = int(last["episodes"]) // 2  # killed halfway
+            patch.setattr(offpac_il, "run_episode", interrupted_after(episodes))
+            with pytest.raises(KeyboardInterrupt):
+                offpac_il.train(tiny_config(interrupted, hopper_demos, extra=selector))
+        saved = json.loads(str(nets.load_arrays(interrupted / "checkpoint.npz")["counters"]))
+        assert saved["episodes"] == episodes and 0 < saved["interactions"] < interactions[-1]
+        offpac_il.train(tiny_config(interrupted, hopper_demos, extra=selector), resume=True)
+    assert read_progress(interrupted) == rows
