@@ -713,7 +713,8 @@ def policy_gradient(learner: Learner, states: np.ndarray, noise: np.ndarray, tot
 
     states: (B, dim s); noise: (B*Z, dim z), Z noise vectors per state; total_rows: the
     rows of the whole step, over which gradient (6) averages. Returns sums over the
-    chunk's rows, so that chunks add up: (grads, loss, sum of q, saturated components).
+    chunk's rows, so that chunks add up: (grads, loss, sum of q, (saturated action
+    components, all action components)).
     """
     actions, policy_cache = learner.policy_forward(states, noise)  # (B*Z, dim A)
     _, critic_cache = learner.critic.forward((states, actions))  # logits (B*Z, 1)
@@ -726,7 +727,7 @@ def policy_gradient(learner: Learner, states: np.ndarray, noise: np.ndarray, tot
     )
     # Through tanh (or the Gaussian's reparameterisation) and PN.
     grads = learner.policy_backward(d_actions, policy_cache)
-    saturated = np.count_nonzero(np.abs(actions) > 0.99)
+    saturated = (np.count_nonzero(np.abs(actions) > 0.99), actions.size)
     return grads, -float(log_q.sum()) / total_rows, float(critic_cache.output.sum()), saturated
 
 
@@ -751,7 +752,8 @@ def policy_loss_and_grads(learner: Learner, states: np.ndarray, noise: np.ndarra
     }  # the chunks' partial sums, in a fixed order
     stats = {
         "q_policy": sum(p[2] for p in parts) / len(noise),
-        "saturation": sum(p[3] for p in parts) / noise.size,
+        # Fraction of all action components at the bound.
+        "saturation": sum(p[3][0] for p in parts) / sum(p[3][1] for p in parts),
     }
     return sum(p[1] for p in parts), grads, stats
 
