@@ -11,17 +11,20 @@ are rejected: there the difference measures neither side's slope.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 from gradcheck import assert_gradient_close, numerical_derivative_elementwise, numerical_gradient
+from helpers import read_rows
 from hypothesis import assume, given
 from hypothesis import strategies as st
 from test_nets import FD_FLOOR
 from test_offpac_il import OBJECTIVE_EPS, OBJECTIVE_TOL, away_from_kinks
 
+import expert
 import nets
 import sac
 
@@ -301,3 +304,78 @@ def test_temperature_moves_towards_the_target_entropy():
     """alpha rises while the entropy -E log pi is below H_bar, and falls above it."""
     assert sac.temperature_loss_and_grad(0.0, np.array([3.0]), -2.0)[1] < 0  # descent: up
     assert sac.temperature_loss_and_grad(0.0, np.array([1.0]), -2.0)[1] > 0  # descent: down
+
+
+# ---------------------------------------------------------------------------------------
+# Runs: resume, learning, the expert file and the command line.
+# ---------------------------------------------------------------------------------------
+
+PENDULUM = "InvertedPendulum-v4"
+TINY = sac.SACConfig(
+    steps=600,
+    hidden=(16, 16),
+    batch_size=32,
+    learning_starts=200,
+    eval_every=200,
+    eval_episodes=2,
+    checkpoint_every=0.0,
+    log_every=1e9,
+)
+
+
+def read_progress(run_dir: Path) -> list[dict]:
+    return read_rows(run_dir / "progress.csv", drop=("wall_seconds", "steps_per_second"))
+
+
+def final_params(run_dir: Path) -> dict[str, np.ndarray]:
+    arrays = nets.load_arrays(run_dir / "checkpoint.npz")
+    return {k: v for k, v in arrays.items() if not k.startswith(("rows", "counters"))}
+
+
+def run_tiny(run_dir: Path, resume=False, seed=0, config=TINY) -> sac.Progress:
+    return sac.train(
+        PENDULUM, seed, config, run_dir, run_dir / "expert.npz", resume=resume, log=lambda _: None
+    )
+
+
+def interrupted_after(updates: int):
+    """sac.update, raising as a kill would once `updates` updates ran."""
+    original, calls = sac.update, {"n": 0}
+
+    def update(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] > updates:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    return update
+
+
+def test_resume_reproduces_an_uninterrupted_run(tmp_path, monkeypatch):
+    whole, again, other = tmp_path / "whole", tmp_path / "again", tmp_path / "other"
+    run_tiny(whole)
+    run_tiny(again)
+    run_tiny(other, seed=1)
+    interrupted = tmp_path / "interrupted"
+    with monkeypatch.context() as patch:
+        patch.setattr(sac, "update", interrupted_after(250))
+        with pytest.raises(KeyboardInterrupt):
+            run_tiny(interrupted)
+    counters = json.loads(str(nets.load_arrays(interrupted / "checkpoint.npz")["counters"]))
+    assert 200 < counters["env_steps"] < 450  # checkpointed after some updates, not at 0
+    run_tiny(interrupted, resume=True)
+
+    expected = read_progress(whole)
+    assert [int(row["env_steps"]) for row in expected] == [200, 400, 600]
+    assert read_progress(again) == expected
+    assert read_progress(other) != expected
+    assert read_progress(interrupted) == expected
+    final = final_params(whole)
+    for name, value in final_params(interrupted).items():
+        np.testing.assert_array_equal(value, final[name], err_msg=name)
+    # The expert file holds the best evaluated policy, loadable by expert.load_expert.
+    best = max(expected, key=lambda row: float(row["eval_return_mean"]))
+    policy = expert.load_expert(PENDULUM, interrupted / "expert.npz")
+    assert policy.kind == expert.SAC_MLP
+    assert policy.metadata["env_steps"] == int(best["env_steps"])
+    assert policy.metadata["eval_return_mean"] == pytest.approx(float(best["eval_return_mean"]))
