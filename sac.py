@@ -574,7 +574,7 @@ def train(
     A run stopped by its budget in the middle of an episode, then extended, starts the
     extension with a fresh episode; a killed run continues exactly where its checkpoint is.
     """
-    run_dir = Path(run_dir)
+    run_dir, expert_path = Path(run_dir), Path(expert_path)
     checkpoint = run_dir / "checkpoint.npz"
     if resume:
         saved = saved_run(run_dir)
