@@ -20,8 +20,9 @@ Symbols of the ARS paper and where they live:
 Policy: ``a = clip(M @ ((s - mu) / sqrt(diag Sigma)), low, high)``, deterministic.
 
 Files:
-    experts/<env>.npz    a shipped expert: M, mu, std, action bounds, and a JSON ``metadata``
-                         record of the training commands, seed, env steps and wall time
+    experts/<env>.npz    a shipped expert: M, mu, std (ARS) or a policy network (SAC, sac.py),
+                         action bounds, and a JSON ``metadata`` record of the training
+                         commands, seed, env steps and wall time
     experts/table.json   Table 1 for the -v4 tasks (``python expert.py table``)
     demos/*.npz          demonstrations: ``observations``, ``actions`` (env units),
                          ``next_observations``, ``terminals`` (is s' terminal), ``env_id``,
@@ -148,39 +149,74 @@ def env_dimensions(env: gym.Env) -> tuple[int, int]:
 
 
 # ---------------------------------------------------------------------------------------------
-# The expert policy: a linear map of normalised states (ARS V2)
+# The expert policy: a linear map of normalised states (ARS V2), or a SAC policy network
 # ---------------------------------------------------------------------------------------------
+
+ARS_LINEAR, SAC_MLP = "ars-linear", "sac-mlp"
+EXPERT_KINDS = (ARS_LINEAR, SAC_MLP)
+
+
+def tanh_to_bounds(action: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """[-1, 1] -> [low, high]: low + (a + 1)(high - low)/2 (the networks act in [-1, 1])."""
+    return low + (action + 1.0) * (high - low) / 2.0
 
 
 @dataclass
 class ExpertPolicy:
-    """ARS V2 linear policy ``a = clip(M @ ((s - mu) / std), low, high)`` in raw env units."""
+    """A deterministic expert in raw env units, of one of two kinds:
+
+    - ``ars-linear``: ARS V2 ``a = clip(M @ ((s - mu) / std), low, high)``; ``weights``,
+      ``obs_mean`` and ``obs_std`` hold M, mu and std, and ``network`` is None.
+    - ``sac-mlp``: the mean action of a SAC policy (sac.py), ``a = low + (tanh(m(s)) + 1)
+      (high - low)/2`` with ``m(s)`` the first dim A outputs of ``network`` (the others are
+      its log std, unused here); ``weights``, ``obs_mean`` and ``obs_std`` are None.
+    """
 
     env_id: str
-    weights: np.ndarray  # M, (dim A, dim S)
-    obs_mean: np.ndarray  # mu, (dim S,)
-    obs_std: np.ndarray  # sqrt(diag Sigma), (dim S,)
+    weights: np.ndarray | None  # M, (dim A, dim S)
+    obs_mean: np.ndarray | None  # mu, (dim S,)
+    obs_std: np.ndarray | None  # sqrt(diag Sigma), (dim S,)
     action_low: np.ndarray  # (dim A,)
     action_high: np.ndarray  # (dim A,)
     metadata: dict = dataclasses.field(default_factory=dict)
+    network: nets.MLP | None = None  # SAC: state -> (mean, log std), (dim S) -> (2 dim A)
+
+    @property
+    def kind(self) -> str:
+        return ARS_LINEAR if self.network is None else SAC_MLP
 
     def act(self, observation: np.ndarray) -> np.ndarray:
-        """Deterministic action for one state, clipped to the action bounds."""
-        normalised = (np.asarray(observation, dtype=np.float64) - self.obs_mean) / self.obs_std
-        return np.clip(self.weights @ normalised, self.action_low, self.action_high)  # (dim A,)
+        """Deterministic action for one state, within the action bounds."""
+        if self.network is None:
+            normalised = (np.asarray(observation, dtype=np.float64) - self.obs_mean) / self.obs_std
+            return np.clip(self.weights @ normalised, self.action_low, self.action_high)  # (dim A,)
+        state = np.asarray(observation, dtype=self.network.dtype)[None]  # (1, dim S)
+        mean = self.network.forward(state)[0][0, : len(self.action_low)]  # (dim A,)
+        return tanh_to_bounds(np.tanh(mean).astype(np.float64), self.action_low, self.action_high)
 
     __call__ = act
 
     def save(self, path: Path, **metadata) -> None:
-        """Write the policy and its provenance (command, seed, steps, wall time, ...)."""
+        """Write the policy and its provenance (command, seed, steps, wall time, ...).
+
+        An ARS file holds ``weights``, ``obs_mean``, ``obs_std`` (the format of the first
+        shipped experts, which has no ``kind``); a SAC file holds ``kind`` = "sac-mlp",
+        the layer ``sizes`` and the network's ``policy/W0``, ``policy/b0``, ... .
+        """
         record = {**self.metadata, **metadata}
+        if self.network is None:
+            arrays = dict(weights=self.weights, obs_mean=self.obs_mean, obs_std=self.obs_std)
+        else:
+            arrays = dict(
+                kind=np.array(SAC_MLP),
+                sizes=np.array(self.network.sizes),
+                **self.network.state("policy"),
+            )
         nets.save_arrays(
             path,
             dict(
                 env_id=np.array(self.env_id),
-                weights=self.weights,
-                obs_mean=self.obs_mean,
-                obs_std=self.obs_std,
+                **arrays,
                 action_low=self.action_low,
                 action_high=self.action_high,
                 metadata=np.array(json.dumps(record, sort_keys=True)),
@@ -194,7 +230,10 @@ def default_expert_path(env_id: str) -> Path:
 
 
 def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
-    """Load the shipped expert for ``env_id`` (or the one at ``path``), checking it fits the env."""
+    """Load the shipped expert for ``env_id`` (or the one at ``path``), checking it fits the env.
+
+    Files without a ``kind`` are ARS linear policies (every file written before SAC).
+    """
     path = Path(path) if path is not None else default_expert_path(env_id)
     if not path.exists():
         raise UserError(
@@ -203,21 +242,52 @@ def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
         )
     try:
         with np.load(path, allow_pickle=False) as file:
-            policy = ExpertPolicy(
+            kind = str(file["kind"]) if "kind" in file.files else ARS_LINEAR
+            common = dict(
                 env_id=str(file["env_id"]),
-                weights=np.asarray(file["weights"], dtype=np.float64),
-                obs_mean=np.asarray(file["obs_mean"], dtype=np.float64),
-                obs_std=np.asarray(file["obs_std"], dtype=np.float64),
                 action_low=np.asarray(file["action_low"], dtype=np.float64),
                 action_high=np.asarray(file["action_high"], dtype=np.float64),
                 metadata=json.loads(str(file["metadata"])),
             )
+            if kind == ARS_LINEAR:
+                policy = ExpertPolicy(
+                    weights=np.asarray(file["weights"], dtype=np.float64),
+                    obs_mean=np.asarray(file["obs_mean"], dtype=np.float64),
+                    obs_std=np.asarray(file["obs_std"], dtype=np.float64),
+                    **common,
+                )
+            elif kind == SAC_MLP:
+                sizes = [int(size) for size in file["sizes"]]
+                params = {
+                    key.removeprefix("policy/"): file[key]
+                    for key in file.files
+                    if key.startswith("policy/")
+                }
+                policy = ExpertPolicy(
+                    weights=None,
+                    obs_mean=None,
+                    obs_std=None,
+                    network=nets.MLP(sizes, "identity", params),
+                    **common,
+                )
+            else:
+                raise ValueError(f"unknown expert kind {kind!r}; expected one of {EXPERT_KINDS}")
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
         raise UserError(f"{path}: not a valid expert file ({error})") from None
     if policy.env_id != env_id:
         raise UserError(f"{path}: expert was trained on {policy.env_id}, not {env_id}")
-    dim_a, dim_s = policy.weights.shape
-    if policy.obs_mean.shape != (dim_s,) or policy.action_low.shape != (dim_a,):
+    if policy.network is None:
+        dim_a, dim_s = policy.weights.shape
+        consistent = policy.obs_mean.shape == (dim_s,)
+    else:
+        sizes = policy.network.sizes
+        dim_a = sizes[-1] // 2  # mean and log std per action dimension
+        layers = list(zip(sizes[:-1], sizes[1:], strict=True))
+        expected = {f"W{i}": shape for i, shape in enumerate(layers)}
+        expected |= {f"b{i}": (fan_out,) for i, (_, fan_out) in enumerate(layers)}
+        actual = {key: value.shape for key, value in policy.network.params.items()}
+        consistent = sizes[-1] == 2 * dim_a and actual == expected
+    if not consistent or policy.action_low.shape != (dim_a,):
         raise UserError(f"{path}: inconsistent array shapes in expert file")
     return policy
 
@@ -1033,14 +1103,28 @@ def positive_int(text: str) -> int:
 
 
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
-    """One flag per ARSConfig field, help from the field's docstring; default = task default."""
-    docs = field_docstrings(ARSConfig)
-    for field in dataclasses.fields(ARSConfig):
+    """One flag per ARSConfig and sac.SACConfig field, help from the fields' docstrings.
+
+    A field both have (the budget, the evaluations) is one flag; every default is None,
+    "not given", so that each method can apply its own and refuse the other's flags.
+    """
+    import sac
+
+    ars_fields = {field.name: field for field in dataclasses.fields(ARSConfig)}
+    sac_fields = {field.name: field for field in dataclasses.fields(sac.SACConfig)}
+    ars_docs, sac_docs = field_docstrings(ARSConfig), field_docstrings(sac.SACConfig)
+    for name in [*ars_fields, *(name for name in sac_fields if name not in ars_fields)]:
+        field = ars_fields.get(name) or sac_fields[name]
+        helps = []
+        if name in ars_fields:
+            helps.append(f"ARS: {ars_docs[name]} (default: per task, else {field.default})")
+        if name in sac_fields:
+            helps.append(f"SAC: {sac_docs[name]} (default: {sac_fields[name].default})")
+        options = dict(type=float if field.type in ("float", float) else positive_int)
+        if name not in ars_fields and "tuple" in str(field.type):
+            options["nargs"] = "+"
         parser.add_argument(
-            "--" + field.name.replace("_", "-"),
-            type=float if field.type in ("float", float) else positive_int,
-            default=None,
-            help=f"{docs.get(field.name, '')} (default: per task, else {field.default})",
+            "--" + name.replace("_", "-"), default=None, help=" | ".join(helps), **options
         )
 
 
@@ -1092,7 +1176,28 @@ def command_line(argv: list[str]) -> str:
     return shlex.join(["python", "expert.py", *argv])
 
 
+def given_flags(args, names) -> list[str]:
+    """The flags among ``names`` (dataclass field names) given on the command line."""
+    return ["--" + name.replace("_", "-") for name in names if getattr(args, name) is not None]
+
+
 def cli_train(args, argv) -> None:
+    import sac
+
+    ars_only = {f.name for f in dataclasses.fields(ARSConfig)} - {
+        f.name for f in dataclasses.fields(sac.SACConfig)
+    }
+    sac_only = {f.name for f in dataclasses.fields(sac.SACConfig)} - {
+        f.name for f in dataclasses.fields(ARSConfig)
+    }
+    wrong = given_flags(args, sorted(sac_only | {"run_dir"} if args.method == "ars" else ars_only))
+    if args.method == "sac" and args.checkpoint is not None:
+        wrong.append("--checkpoint")
+    if wrong:
+        raise UserError(f"{', '.join(wrong)}: not a setting of --method {args.method}")
+    if args.method == "sac":
+        cli_train_sac(args, argv)
+        return
     overrides = {field.name: getattr(args, field.name) for field in dataclasses.fields(ARSConfig)}
     config = ars_config_for(args.env, **overrides)
     if args.resume:
@@ -1116,6 +1221,40 @@ def cli_train(args, argv) -> None:
         config,
         args.workers,
         checkpoint,
+        out,
+        resume=args.resume,
+        command=command_line(argv),
+        log=lambda line: print(line, flush=True),
+    )
+
+
+def cli_train_sac(args, argv) -> None:
+    """``train --method sac``: a SAC run in ``--run-dir``, its best policy to ``--out``."""
+    import sac
+
+    run_dir = Path(args.run_dir) if args.run_dir else sac.default_run_dir(args.env, args.seed)
+    names = [field.name for field in dataclasses.fields(sac.SACConfig)]
+    if args.resume:
+        given = [flag for flag in given_flags(args, names) if flag != "--steps"]
+        if given:
+            raise UserError(
+                f"--resume continues the run's settings; only --steps may change "
+                f"(got {', '.join(given)})"
+            )
+        saved = sac.saved_run(run_dir)
+        config = dataclasses.replace(saved["config"], steps=args.steps or saved["config"].steps)
+        seed, out = saved["seed"], Path(args.out or saved["expert_path"])
+    else:
+        values = {name: getattr(args, name) for name in names if getattr(args, name) is not None}
+        if "hidden" in values:
+            values["hidden"] = tuple(values["hidden"])
+        config = sac.SACConfig(**values)
+        seed, out = args.seed, Path(args.out) if args.out else default_expert_path(args.env)
+    sac.train(
+        args.env,
+        seed,
+        config,
+        run_dir,
         out,
         resume=args.resume,
         command=command_line(argv),
@@ -1173,19 +1312,37 @@ def build_parser() -> argparse.ArgumentParser:
     parser = CommandLineParser(prog="expert.py", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
 
-    train_parser = commands.add_parser("train", help="train an ARS V2-t expert")
+    train_parser = commands.add_parser(
+        "train", help="train an expert: ARS V2-t (default) or SAC (--method sac)"
+    )
     train_parser.add_argument("--env", required=True, help="gymnasium id, e.g. Hopper-v4")
+    train_parser.add_argument(
+        "--method",
+        choices=("ars", "sac"),
+        default="ars",
+        help="ARS V2-t (Hopper, HalfCheetah) or Soft Actor-Critic, sac.py (Walker2d, Ant, "
+        "Humanoid)",
+    )
     train_parser.add_argument("--seed", type=int, default=0)
     train_parser.add_argument(
         "--workers",
         type=positive_int,
         default=os.cpu_count() or 1,
-        help="rollout processes (default: CPU count)",
+        help="ARS: rollout processes (default: CPU count)",
     )
     train_parser.add_argument(
-        "--resume", action="store_true", help="continue exactly from the checkpoint"
+        "--resume",
+        action="store_true",
+        help="continue exactly from the checkpoint (ARS: --checkpoint; SAC: --run-dir)",
     )
-    train_parser.add_argument("--checkpoint", help="default: experts/checkpoints/<env>.ckpt.npz")
+    train_parser.add_argument(
+        "--checkpoint", help="ARS: default experts/checkpoints/<env>.ckpt.npz"
+    )
+    train_parser.add_argument(
+        "--run-dir",
+        help="SAC: run directory with checkpoint.npz and progress.csv "
+        "(default: runs/sac-<env>-seed<seed>, git-ignored)",
+    )
     train_parser.add_argument("--out", help="expert file (default: experts/<env>.npz)")
     add_config_flags(train_parser)
     train_parser.set_defaults(handler=cli_train)
@@ -1249,4 +1406,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Run as the module `expert`, the one sac.py imports, so that both share one UserError
+    # (a script's own classes live in __main__, a second copy of this file).
+    import expert
+
+    sys.exit(expert.main())

@@ -1,0 +1,760 @@
+"""Soft Actor-Critic in NumPy: the expert trainer for the tasks ARS cannot reach.
+
+Haarnoja, Zhou, Hartikainen, Tucker, Ha, Tan, Kumar, Zhu, Gupta, Abbeel & Levine, "Soft
+Actor-Critic Algorithms and Applications", 2018 (https://arxiv.org/abs/1812.05905): the
+version of SAC with twin Q-functions and a learned entropy temperature. Equation numbers
+below are that paper's. ARS (expert.py) ships the Hopper and HalfCheetah experts; it falls
+short of the targets on Walker2d, Ant and Humanoid within a practical budget on 2 cores,
+so those are trained here, through ``python expert.py train --env Walker2d-v4 --method sac``.
+
+The paper's symbols and where they live:
+
+    s, a, r, s'    state, action in [-1, 1]^dim A, reward, next state  -> ``Batch``
+    D              replay buffer                                        -> ``ReplayBuffer``
+    pi_phi         tanh-squashed Gaussian policy: an MLP s -> (mu, log sigma),
+                   u = mu + sigma * eps, a = tanh(u)   (Eq. 8, App. C) -> ``sample_actions``
+    Q_theta1,2     twin soft Q-functions, MLPs [s, a] -> 1              -> ``Agent.q1``, ``q2``
+    Q_theta_bar    their targets, theta_bar <- tau theta + (1 - tau) theta_bar
+                                                                        -> ``target_q1``, ``q2``
+    alpha          entropy temperature, learned as log alpha            -> ``Agent.log_alpha``
+    H_bar          target entropy, -dim A                               -> ``Agent.target_entropy``
+
+One update (``update``), as in Stable-Baselines3's SAC:
+  1. sample a ~ pi(.|s) for the batch's states (Eq. 8), keeping the forward pass;
+  2. one step on the temperature loss J(alpha), Eq. (18);
+  3. targets y = r + gamma (1 - terminated) (min_i Q_bar_i(s', a') - alpha log pi(a'|s')),
+     a' ~ pi(.|s'): Eq. (2)-(3) with the twin minimum; a time-limit truncation is not a
+     termination, so it bootstraps;
+  4. one step on each critic's loss J_Q, Eq. (5), whose gradient is Eq. (6);
+  5. one step on the policy loss J_pi = E[alpha log pi(a|s) - min_i Q_i(s, a)], Eq. (9),
+     through the reparameterised sample, Eq. (10), with the critics just updated;
+  6. soft updates of both target critics.
+Every gradient is written out by hand below and checked against finite differences in
+tests/test_sac.py.
+
+Settings are the common SAC settings for MuJoCo (Stable-Baselines3 / rl-baselines3-zoo and
+CleanRL): two hidden layers of 256 units, Adam with learning rate 3e-4 for everything,
+batch 256, replay 10^6, gamma 0.99, tau 0.005, 10 000 uniformly random steps before the
+first update, then one gradient step per environment step; log sigma clipped to [-20, 2]
+(SB3); initial alpha 1. Two differences from those libraries, both from ``nets.MLP``:
+hidden units are leaky ReLU (slope 0.01) instead of ReLU, and weights start from Xavier
+(Glorot) uniform instead of PyTorch's default. Observations are not normalised (neither
+library does for SAC).
+
+Files in the run directory (outside the repository or under the git-ignored ``runs/``):
+``config.json``, ``progress.csv`` (one row per evaluation), ``checkpoint.npz`` (everything
+needed to continue: networks, targets, optimisers, alpha, the filled part of the replay
+buffer in float32, the Generator's state, counters and progress rows; written atomically at
+the end of an episode every ``checkpoint_every`` seconds). The best evaluated policy goes
+to the expert file (default ``experts/<env>.npz``), in the format ``expert.load_expert``
+reads; evaluation is the deterministic policy a = tanh(mu(s)).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+import expert
+import nets
+from expert import UserError
+
+# ----------------------------------------------------------------------------------------
+# Hyperparameters. expert.py makes one --flag per field, its help text the docstring.
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class SACConfig:
+    """SAC settings; the defaults are the SB3 / rl-zoo / CleanRL settings for MuJoCo."""
+
+    steps: int = 1_000_000
+    """Training budget in environment steps (evaluation episodes not counted)."""
+    hidden: tuple[int, ...] = (256, 256)
+    """Hidden layer sizes of the policy and of each critic."""
+    lr: float = 3e-4
+    """Adam learning rate of the policy, the critics and log alpha."""
+    batch_size: int = 256
+    """Transitions per gradient step."""
+    replay_size: int = 1_000_000
+    """Capacity of the replay buffer (FIFO)."""
+    gamma: float = 0.99
+    """Discount factor."""
+    tau: float = 0.005
+    """Target critic tracking rate: theta_bar <- tau theta + (1 - tau) theta_bar."""
+    learning_starts: int = 10_000
+    """Uniformly random actions for this many steps; updates start after them."""
+    initial_alpha: float = 1.0
+    """Entropy temperature alpha before its first step."""
+    eval_every: int = 10_000
+    """Environment steps between evaluations of the deterministic policy tanh(mu(s))."""
+    eval_episodes: int = 10
+    """Episodes per evaluation; the best evaluated policy is the one shipped."""
+    checkpoint_every: float = 300.0
+    """Seconds between checkpoints (taken at episode ends); 0: after every episode."""
+    log_every: float = 60.0
+    """Seconds between training progress lines (evaluations always print)."""
+
+
+def check_config(config: SACConfig) -> None:
+    """Refuse settings that cannot work, with one clear message."""
+    for name in ("steps", "batch_size", "replay_size", "eval_every", "eval_episodes"):
+        if getattr(config, name) < 1:
+            raise UserError(f"--{name.replace('_', '-')} must be at least 1")
+    if not config.hidden or min(config.hidden) < 1:
+        raise UserError("--hidden needs at least one layer of at least one unit")
+    if config.learning_starts < 1:
+        raise UserError("--learning-starts must be at least 1 (the buffer must not be empty)")
+    if not 0.0 <= config.gamma < 1.0 or not 0.0 < config.tau <= 1.0:
+        raise UserError("--gamma must lie in [0, 1) and --tau in (0, 1]")
+    if config.lr <= 0 or config.initial_alpha <= 0:
+        raise UserError("--lr and --initial-alpha must be positive")
+
+
+# ----------------------------------------------------------------------------------------
+# The policy: a tanh-squashed Gaussian, sampled by reparameterisation (Eq. 8, App. C).
+# ----------------------------------------------------------------------------------------
+
+# log sigma is clipped to [-20, 2] (SB3): sigma from 2e-9 (a deterministic action) to 7.4
+# (far wider than tanh's useful range). Outside, the clip has zero gradient.
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
+HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+LOG_2 = math.log(2.0)
+
+
+def squash_correction(u: np.ndarray) -> np.ndarray:
+    """-sum_i log(1 - tanh(u_i)^2), the change of variables a = tanh(u) (App. C), per row.
+
+    1 - tanh(u)^2 underflows to 0 in float32 already at |u| = 9, and log 0 = -inf; the
+    identity 1 - tanh(u)^2 = 4 / (e^u + e^-u)^2 gives the stable form
+        log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u)),
+    finite for every u. Its derivative is `squash_correction_grad`.
+    """
+    return -2.0 * (LOG_2 - u - nets.softplus(-2.0 * u)).sum(axis=1)
+
+
+def squash_correction_grad(u: np.ndarray) -> np.ndarray:
+    """d/du_i of `squash_correction`: -d/du log(1 - tanh(u)^2) = 2 tanh(u), element-wise."""
+    return 2.0 * np.tanh(u)
+
+
+@dataclass
+class PolicySample:
+    """What `sample_actions_backward` needs from `sample_actions`, all (B, dim A) but cache."""
+
+    cache: nets.Cache  # the policy MLP's forward pass
+    noise: np.ndarray  # eps ~ N(0, I)
+    std: np.ndarray  # sigma = exp(log sigma)
+    log_std_free: np.ndarray  # 1 where log sigma was inside its clip range, else 0
+    u: np.ndarray  # pre-squash sample mu + sigma eps
+    actions: np.ndarray  # a = tanh(u)
+
+
+def sample_actions(policy: nets.MLP, states: np.ndarray, noise: np.ndarray):
+    """a = tanh(mu(s) + sigma(s) eps) and log pi(a|s), for one noise row per state.
+
+    states: (B, dim S); noise: eps, (B, dim A). Returns (actions (B, dim A), log_prob (B,),
+    PolicySample). With u = mu + sigma eps (Eq. 8), the Gaussian's log density at u is
+    sum_i -eps_i^2/2 - log sigma_i - log(2 pi)/2, and App. C adds the squashing term:
+        log pi(a|s) = log N(u; mu, sigma) - sum_i log(1 - tanh(u_i)^2).
+    """
+    dim_a = noise.shape[1]
+    out, cache = policy.forward(states)  # (B, 2 dim A)
+    mean, raw_log_std = out[:, :dim_a], out[:, dim_a:]
+    log_std = np.clip(raw_log_std, LOG_STD_MIN, LOG_STD_MAX)
+    std = np.exp(log_std)
+    u = mean + std * noise  # Eq. (8): a = f_phi(eps; s) = tanh(u)
+    actions = np.tanh(u)
+    log_gaussian = -(0.5 * noise * noise + log_std + HALF_LOG_2PI).sum(axis=1)
+    log_prob = log_gaussian + squash_correction(u)  # App. C
+    log_std_free = ((raw_log_std > LOG_STD_MIN) & (raw_log_std < LOG_STD_MAX)).astype(out.dtype)
+    return actions, log_prob, PolicySample(cache, noise, std, log_std_free, u, actions)
+
+
+def sample_actions_backward(
+    policy: nets.MLP, d_actions: np.ndarray, d_log_prob: np.ndarray, sample: PolicySample
+) -> dict[str, np.ndarray]:
+    """The policy's parameter gradients of a loss L(a, log pi), the noise eps held fixed.
+
+    d_actions: dL/da, (B, dim A); d_log_prob: dL/d log pi, (B,). Eq. (10) is this chain
+    rule. With eps fixed, the Gaussian term -eps^2/2 is constant, so log pi depends on mu
+    only through the squashing term, and on log sigma through -log sigma and through u:
+        dL/du       = dL/da (1 - a^2) + dL/dlog pi * 2 tanh(u)
+        dL/dmu      = dL/du                                  (du/dmu = 1)
+        dL/dlog sig = dL/du sigma eps - dL/dlog pi            (du/dlog sigma = sigma eps)
+    and the clip passes the log sigma gradient only inside [-20, 2].
+    """
+    d_log_prob = d_log_prob[:, None]  # (B, 1), broadcast over the action dimensions
+    d_u = d_actions * (1.0 - sample.actions * sample.actions)  # d tanh(u)/du = 1 - tanh^2
+    d_u += d_log_prob * squash_correction_grad(sample.u)
+    d_log_std = (d_u * sample.std * sample.noise - d_log_prob) * sample.log_std_free
+    d_out = np.concatenate([d_u, d_log_std], axis=1)  # (B, 2 dim A): d(mu), d(log sigma)
+    _, grads = policy.backward(d_out, sample.cache, input_grads=False)
+    return grads
+
+
+def deterministic_actions(policy: nets.MLP, states: np.ndarray) -> np.ndarray:
+    """tanh(mu(s)), the evaluation action, (B, dim A)."""
+    out, _ = policy.forward(states)
+    return np.tanh(out[:, : out.shape[1] // 2])
+
+
+# ----------------------------------------------------------------------------------------
+# The three losses and their gradients: critics (Eq. 5-6), policy (Eq. 9-10), alpha (Eq. 18).
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class Batch:
+    """Transitions, one per row; actions in [-1, 1], terminated as 0.0 / 1.0."""
+
+    observations: np.ndarray  # s, (B, dim S)
+    actions: np.ndarray  # a, (B, dim A)
+    rewards: np.ndarray  # r, (B,)
+    next_observations: np.ndarray  # s', (B, dim S)
+    terminated: np.ndarray  # 1 if s' is terminal (not a time limit), (B,)
+
+
+def critic_targets(
+    target_q1: nets.MLP,
+    target_q2: nets.MLP,
+    policy: nets.MLP,
+    batch: Batch,
+    alpha: float,
+    gamma: float,
+    noise: np.ndarray,
+) -> np.ndarray:
+    """y = r + gamma (1 - terminated) V_bar(s'), (B,). No gradient flows through y.
+
+    V_bar(s') = min_i Q_bar_i(s', a') - alpha log pi(a'|s'), a' ~ pi(.|s') with noise
+    (B, dim A): the soft state value of Eq. (3), one sample, with the twin minimum.
+    """
+    next_actions, next_log_prob, _ = sample_actions(policy, batch.next_observations, noise)
+    q1 = target_q1.forward((batch.next_observations, next_actions))[0][:, 0]  # (B,)
+    q2 = target_q2.forward((batch.next_observations, next_actions))[0][:, 0]  # (B,)
+    soft_value = np.minimum(q1, q2) - alpha * next_log_prob  # Eq. (3)
+    return batch.rewards + gamma * (1.0 - batch.terminated) * soft_value  # Eq. (2)
+
+
+def critic_loss_and_grads(critic: nets.MLP, batch: Batch, targets: np.ndarray):
+    """J_Q = mean_b 1/2 (Q(s, a) - y)^2 (Eq. 5) and its gradient (Eq. 6) for one critic.
+
+    dJ_Q/dQ_b = (Q_b - y_b) / B, then backward through the critic. Returns (loss, grads, Q).
+    """
+    q, cache = critic.forward((batch.observations, batch.actions))  # (B, 1)
+    td_error = q[:, 0] - targets  # (B,)
+    loss = 0.5 * float(np.mean(td_error * td_error))  # Eq. (5)
+    d_q = (td_error / len(td_error))[:, None]  # (B, 1), Eq. (6)
+    _, grads = critic.backward(d_q, cache, input_grads=False)
+    return loss, grads, q[:, 0]
+
+
+def policy_loss_and_grads(
+    policy: nets.MLP,
+    q1: nets.MLP,
+    q2: nets.MLP,
+    states: np.ndarray,
+    actions: np.ndarray,
+    log_prob: np.ndarray,
+    sample: PolicySample,
+    alpha: float,
+):
+    """J_pi = mean_b [alpha log pi(a_b|s_b) - min_i Q_i(s_b, a_b)] (Eq. 9) and Eq. (10).
+
+    actions, log_prob, sample: from `sample_actions(policy, states, noise)`. The critics
+    are held fixed: only their action Jacobians are needed. The minimum routes each row's
+    gradient to the critic that attains it. Returns (loss, policy grads).
+    """
+    batch = len(states)
+    q1_values, q1_cache = q1.forward((states, actions))  # (B, 1)
+    q2_values, q2_cache = q2.forward((states, actions))  # (B, 1)
+    first_is_min = q1_values <= q2_values  # (B, 1)
+    min_q = np.where(first_is_min, q1_values, q2_values)[:, 0]  # (B,)
+    loss = float(np.mean(alpha * log_prob - min_q))  # Eq. (9)
+    # dJ/dmin Q = -1/B, sent to whichever critic is the minimum on that row.
+    d_q1 = np.where(first_is_min, -1.0 / batch, 0.0).astype(q1_values.dtype)  # (B, 1)
+    d_q2 = np.where(first_is_min, 0.0, -1.0 / batch).astype(q2_values.dtype)  # (B, 1)
+    backward = dict(param_grads=False, input_grads=(False, True))
+    (_, d_actions), _ = q1.backward(d_q1, q1_cache, **backward)  # (B, dim A)
+    (_, d_actions_2), _ = q2.backward(d_q2, q2_cache, **backward)
+    d_actions += d_actions_2
+    d_log_prob = np.full(batch, alpha / batch, dtype=log_prob.dtype)  # dJ/dlog pi
+    return loss, sample_actions_backward(policy, d_actions, d_log_prob, sample)  # Eq. (10)
+
+
+def temperature_loss_and_grad(log_alpha: float, log_prob: np.ndarray, target_entropy: float):
+    """J(alpha) = mean_b [-alpha log pi(a_b|s_b) - alpha H_bar] (Eq. 18), alpha = e^log alpha.
+
+    log pi is held fixed. Gradient with respect to log alpha (the variable optimised, so
+    that alpha stays positive): dJ/dlog alpha = alpha dJ/dalpha = -alpha mean(log pi + H_bar).
+    It raises alpha while the policy's entropy -E log pi is below H_bar, and lowers it above.
+    Returns (loss, gradient).
+    """
+    alpha = math.exp(log_alpha)
+    mean_excess = float(np.mean(log_prob)) + target_entropy  # E[log pi] + H_bar
+    return -alpha * mean_excess, -alpha * mean_excess  # J = alpha * (-excess); same slope
+
+
+# ----------------------------------------------------------------------------------------
+# The agent: networks, targets, temperature and optimisers, and one update.
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class Agent:
+    """pi_phi, Q_theta1, Q_theta2, their targets, log alpha, and one Adam per learner."""
+
+    policy: nets.MLP
+    q1: nets.MLP
+    q2: nets.MLP
+    target_q1: nets.MLP
+    target_q2: nets.MLP
+    log_alpha: dict[str, np.ndarray]  # {"log_alpha": (1,) float64}: a dict for nets.Adam
+    target_entropy: float
+    policy_optimizer: nets.Adam = field(default_factory=nets.Adam)
+    q1_optimizer: nets.Adam = field(default_factory=nets.Adam)
+    q2_optimizer: nets.Adam = field(default_factory=nets.Adam)
+    alpha_optimizer: nets.Adam = field(default_factory=nets.Adam)
+
+    @classmethod
+    def create(cls, dim_s: int, dim_a: int, config: SACConfig, rng, dtype=np.float32) -> Agent:
+        hidden = list(config.hidden)
+        policy = nets.MLP.create([dim_s, *hidden, 2 * dim_a], "identity", rng, dtype)
+        q1 = nets.MLP.create([dim_s + dim_a, *hidden, 1], "identity", rng, dtype)
+        q2 = nets.MLP.create([dim_s + dim_a, *hidden, 1], "identity", rng, dtype)
+        log_alpha = {"log_alpha": np.array([math.log(config.initial_alpha)])}
+        # H_bar = -dim A (Sec. 5 leaves it a hyperparameter; -dim A is its App. D value).
+        return cls(policy, q1, q2, q1.copy(), q2.copy(), log_alpha, -float(dim_a))
+
+    @property
+    def alpha(self) -> float:
+        return math.exp(float(self.log_alpha["log_alpha"][0]))
+
+    def state(self) -> dict[str, np.ndarray]:
+        arrays = {"log_alpha": self.log_alpha["log_alpha"]}
+        for name in ("policy", "q1", "q2", "target_q1", "target_q2"):
+            arrays.update(getattr(self, name).state(name))
+        for name in ("policy", "q1", "q2", "alpha"):
+            arrays.update(getattr(self, f"{name}_optimizer").state(f"{name}_adam"))
+        return arrays
+
+    def load_state(self, arrays) -> None:
+        self.log_alpha["log_alpha"][...] = arrays["log_alpha"]
+        for name in ("policy", "q1", "q2", "target_q1", "target_q2"):
+            getattr(self, name).load_state(arrays, name)
+        for name in ("policy", "q1", "q2", "alpha"):
+            getattr(self, f"{name}_optimizer").load_state(arrays, f"{name}_adam")
+
+
+def update(agent: Agent, batch: Batch, config: SACConfig, rng: np.random.Generator) -> dict:
+    """One gradient step of every learner, in SB3's order (module docstring, steps 1-6)."""
+    dim_a = batch.actions.shape[1]
+    dtype = agent.policy.dtype
+    alpha = agent.alpha  # the same alpha in the targets and the policy loss (as SB3)
+    # 1. a ~ pi(.|s), Eq. (8); the forward pass is kept for the policy step (5).
+    noise = rng.standard_normal((len(batch.rewards), dim_a), dtype=dtype)
+    actions, log_prob, sample = sample_actions(agent.policy, batch.observations, noise)
+    # 2. Temperature, Eq. (18).
+    log_alpha = float(agent.log_alpha["log_alpha"][0])
+    _, d_log_alpha = temperature_loss_and_grad(log_alpha, log_prob, agent.target_entropy)
+    agent.alpha_optimizer.step(agent.log_alpha, {"log_alpha": np.array([d_log_alpha])}, config.lr)
+    # 3. Targets, Eq. (2)-(3), from the target critics and a fresh a' ~ pi(.|s').
+    next_noise = rng.standard_normal((len(batch.rewards), dim_a), dtype=dtype)
+    targets = critic_targets(
+        agent.target_q1, agent.target_q2, agent.policy, batch, alpha, config.gamma, next_noise
+    )
+    # 4. Critics, Eq. (5)-(6).
+    q1_loss, q1_grads, q1_values = critic_loss_and_grads(agent.q1, batch, targets)
+    q2_loss, q2_grads, _ = critic_loss_and_grads(agent.q2, batch, targets)
+    agent.q1_optimizer.step(agent.q1.params, q1_grads, config.lr)
+    agent.q2_optimizer.step(agent.q2.params, q2_grads, config.lr)
+    # 5. Policy, Eq. (9)-(10), against the critics just updated.
+    policy_loss, policy_grads = policy_loss_and_grads(
+        agent.policy, agent.q1, agent.q2, batch.observations, actions, log_prob, sample, alpha
+    )
+    agent.policy_optimizer.step(agent.policy.params, policy_grads, config.lr)
+    # 6. Targets track the critics.
+    nets.soft_update(agent.target_q1, agent.q1, config.tau)
+    nets.soft_update(agent.target_q2, agent.q2, config.tau)
+    return {
+        "critic_loss": q1_loss + q2_loss,
+        "policy_loss": policy_loss,
+        "alpha": alpha,
+        "entropy": -float(np.mean(log_prob)),  # a one-sample estimate of H(pi(.|s))
+        "q_mean": float(np.mean(q1_values)),
+    }
+
+
+# ----------------------------------------------------------------------------------------
+# The replay buffer D.
+# ----------------------------------------------------------------------------------------
+
+
+class ReplayBuffer:
+    """A FIFO of the latest `capacity` transitions, float32, allocated once.
+
+    np.zeros maps untouched pages lazily, so a 10^6 buffer costs memory only as it fills;
+    `state` saves only the filled rows.
+    """
+
+    FIELDS = ("observations", "actions", "rewards", "next_observations", "terminated")
+
+    def __init__(self, capacity: int, dim_s: int, dim_a: int):
+        self.capacity, self.size, self.next_index = capacity, 0, 0
+        self.observations = np.zeros((capacity, dim_s), np.float32)
+        self.actions = np.zeros((capacity, dim_a), np.float32)
+        self.rewards = np.zeros(capacity, np.float32)
+        self.next_observations = np.zeros((capacity, dim_s), np.float32)
+        self.terminated = np.zeros(capacity, np.float32)
+
+    def add(self, observation, action, reward: float, next_observation, terminated: bool):
+        i = self.next_index
+        self.observations[i], self.actions[i], self.rewards[i] = observation, action, reward
+        self.next_observations[i], self.terminated[i] = next_observation, terminated
+        self.next_index = (i + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, rng: np.random.Generator, n: int) -> Batch:
+        rows = rng.integers(0, self.size, n)  # uniform, with replacement
+        return Batch(*(getattr(self, name)[rows] for name in self.FIELDS))
+
+    def state(self) -> dict[str, np.ndarray]:
+        arrays = {f"replay/{name}": getattr(self, name)[: self.size] for name in self.FIELDS}
+        arrays["replay/size_next"] = np.array([self.size, self.next_index])
+        return arrays
+
+    def load_state(self, arrays) -> None:
+        self.size, self.next_index = (int(v) for v in arrays["replay/size_next"])
+        if self.size > self.capacity:
+            raise UserError(f"checkpoint's replay buffer holds more than {self.capacity} rows")
+        for name in self.FIELDS:
+            getattr(self, name)[: self.size] = arrays[f"replay/{name}"]
+
+
+# ----------------------------------------------------------------------------------------
+# The run: progress, checkpoints, evaluation and the training loop.
+# ----------------------------------------------------------------------------------------
+
+PROGRESS_FIELDS = (
+    "env_steps",
+    "wall_seconds",
+    "updates",
+    "episodes",
+    "eval_return_mean",
+    "eval_return_std",
+    "train_return",
+    "alpha",
+    "entropy",
+    "critic_loss",
+    "policy_loss",
+    "q_mean",
+    "steps_per_second",
+)
+UPDATE_STATS = ("alpha", "entropy", "critic_loss", "policy_loss", "q_mean")
+
+
+@dataclass
+class Progress:
+    """Counters a checkpoint must restore, besides networks, buffer and Generator."""
+
+    env_steps: int = 0
+    updates: int = 0
+    episodes: int = 0
+    eval_rounds: int = 0
+    wall_seconds: float = 0.0
+    best_return: float = -math.inf
+    best_return_std: float = 0.0
+    best_env_steps: int = 0
+    commands: list[str] = field(default_factory=list)
+    recent_returns: list[float] = field(default_factory=list)  # since the last evaluation
+    stat_sums: dict[str, float] = field(default_factory=dict)  # of updates since then
+    stat_count: int = 0
+    rows: list[dict] = field(default_factory=list)
+
+
+def progress_csv(rows: list[dict]) -> str:
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=PROGRESS_FIELDS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return out.getvalue()
+
+
+def save_checkpoint(
+    run_dir: Path, agent: Agent, replay: ReplayBuffer, progress: Progress, rng
+) -> None:
+    """Everything needed to continue exactly, in one atomic file; then progress.csv."""
+    counters = {k: v for k, v in dataclasses.asdict(progress).items() if k != "rows"}
+    nets.save_arrays(
+        run_dir / "checkpoint.npz",
+        {
+            **agent.state(),
+            **replay.state(),
+            "rng": np.array(json.dumps(rng.bit_generator.state)),
+            "counters": np.array(json.dumps(counters)),
+            "rows": np.array(json.dumps(progress.rows)),
+        },
+    )
+    nets.write_text(run_dir / "progress.csv", progress_csv(progress.rows))
+
+
+def load_checkpoint(run_dir: Path, agent: Agent, replay: ReplayBuffer, rng) -> Progress:
+    path = run_dir / "checkpoint.npz"
+    try:
+        arrays = nets.load_arrays(path)
+        agent.load_state(arrays)
+        replay.load_state(arrays)
+        rng.bit_generator.state = json.loads(str(arrays["rng"]))
+        progress = Progress(**json.loads(str(arrays["counters"])))
+    except (OSError, ValueError, KeyError, EOFError) as error:
+        raise UserError(f"{path}: not a valid SAC checkpoint ({error})") from None
+    # progress.csv may hold rows written after this checkpoint: the checkpoint's own copy
+    # of the rows is the truth, and a resumed run rewrites the file from it.
+    progress.rows = json.loads(str(arrays["rows"]))
+    return progress
+
+
+def expert_policy(env_id: str, agent: Agent, low, high) -> expert.ExpertPolicy:
+    """The deterministic policy tanh(mu(s)) as an expert (a copy of the network)."""
+    return expert.ExpertPolicy(env_id, None, None, None, low, high, network=agent.policy.copy())
+
+
+def evaluate(env, policy: expert.ExpertPolicy, seed: int, round_index: int, episodes: int):
+    """True returns of the deterministic policy over `episodes` fresh seeded episodes.
+
+    The reset seeds come from their own Generator, (seed, round), so evaluating never
+    shifts the training Generator, and they lie far from the seeds 0..9 of Table 1, so
+    the shipped policy is not chosen on the episodes that `expert.py table` reports.
+    """
+    seeds = np.random.default_rng([seed, round_index]).integers(2**20, 2**31 - 1, episodes)
+    return np.array([expert.run_episode(env, policy.act, int(s))[0] for s in seeds])
+
+
+def default_run_dir(env_id: str, seed: int) -> Path:
+    """``<repo>/runs/sac-<env>-seed<seed>`` (``runs/`` is git-ignored)."""
+    return expert.REPO_DIR / "runs" / f"sac-{env_id}-seed{seed}"
+
+
+def saved_run(run_dir: Path) -> dict:
+    """A run directory's config.json: env_id, seed, expert_path and config (a SACConfig)."""
+    try:
+        saved = json.loads((Path(run_dir) / "config.json").read_text())
+        settings = {k: tuple(v) if isinstance(v, list) else v for k, v in saved["sac"].items()}
+        saved["config"] = SACConfig(**settings)
+    except (OSError, ValueError, KeyError, TypeError):
+        raise UserError(f"{run_dir} holds no SAC run (config.json missing or unreadable)") from None
+    return saved
+
+
+def train(
+    env_id: str,
+    seed: int,
+    config: SACConfig,
+    run_dir: Path,
+    expert_path: Path,
+    resume: bool = False,
+    command: str = "",
+    log: Callable[[str], None] = print,
+) -> Progress:
+    """Train SAC until `config.steps` environment steps; keep the best evaluated policy.
+
+    A fresh run refuses a run directory that holds a checkpoint. `resume` continues the
+    run from its last checkpoint exactly (same Generator state, same buffer); `config`
+    must then be the run's own (`saved_run`), and only its budget `steps` may differ.
+    A run stopped by its budget in the middle of an episode, then extended, starts the
+    extension with a fresh episode; a killed run continues exactly where its checkpoint is.
+    """
+    run_dir, expert_path = Path(run_dir), Path(expert_path)
+    checkpoint = run_dir / "checkpoint.npz"
+    if resume:
+        saved = saved_run(run_dir)
+        if saved["env_id"] != env_id:
+            raise UserError(f"{run_dir} is a run on {saved['env_id']}, not {env_id}")
+        if not checkpoint.exists():
+            raise UserError(f"{run_dir} holds no checkpoint to resume from")
+        if dataclasses.replace(config, steps=saved["config"].steps) != saved["config"]:
+            raise UserError(
+                f"--resume continues {run_dir} with its own settings; only the budget may change"
+            )
+        seed = saved["seed"]
+    elif checkpoint.exists():
+        raise UserError(
+            f"{run_dir} already holds a run; continue it with --resume or choose another --run-dir"
+        )
+    check_config(config)
+
+    env, eval_env = expert.make_env(env_id), expert.make_env(env_id)
+    dim_s, dim_a = expert.env_dimensions(env)
+    low = env.action_space.low.astype(np.float64)
+    high = env.action_space.high.astype(np.float64)
+    rng = np.random.default_rng(seed)  # the run's one Generator, passed explicitly
+    agent = Agent.create(dim_s, dim_a, config, rng)
+    replay = ReplayBuffer(config.replay_size, dim_s, dim_a)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if resume:
+        progress = load_checkpoint(run_dir, agent, replay, rng)
+        log(f"resumed {run_dir} at {progress.env_steps} env steps")
+    else:
+        progress = Progress()
+        record = {
+            "env_id": env_id,
+            "seed": seed,
+            "expert_path": str(expert_path),
+            "sac": dataclasses.asdict(config),
+        }
+        nets.write_text(run_dir / "config.json", json.dumps(record, indent=2) + "\n")
+        # A fresh run must not replace a shipped expert with a worse one (as ARS).
+        if expert_path.exists():
+            try:
+                existing = expert.load_expert(env_id, expert_path)
+                progress.best_return = float(existing.metadata.get("eval_return_mean", -np.inf))
+                log(
+                    f"{expert_path} exists (eval return {progress.best_return:.1f}); "
+                    f"it is replaced only by a better evaluation"
+                )
+            except UserError:
+                pass
+    progress.commands.append(command)
+    log(
+        f"SAC on {env_id}: seed {seed}, run dir {run_dir}, expert file {expert_path}, "
+        f"{json.dumps(dataclasses.asdict(config))}"
+    )
+
+    def write_expert() -> None:
+        expert_policy(env_id, agent, low, high).save(
+            expert_path,
+            trainer="SAC (Haarnoja et al. 2018, arXiv:1812.05905), sac.py",
+            commands=list(progress.commands),
+            seed=seed,
+            hyperparameters=dataclasses.asdict(config),
+            env_steps=progress.best_env_steps,
+            wall_seconds=round(progress.wall_seconds, 1),
+            eval_return_mean=progress.best_return,
+            eval_return_std=progress.best_return_std,
+            eval_episodes=config.eval_episodes,
+        )
+
+    def evaluate_now() -> None:
+        returns = evaluate(
+            eval_env,
+            expert_policy(env_id, agent, low, high),
+            seed,
+            progress.eval_rounds,
+            config.eval_episodes,
+        )
+        progress.eval_rounds += 1
+        progress.wall_seconds = time.perf_counter() - started
+        improved = returns.mean() > progress.best_return
+        if improved:
+            progress.best_return, progress.best_return_std = returns.mean(), returns.std()
+            progress.best_env_steps = progress.env_steps
+            write_expert()
+        previous = progress.rows[-1] if progress.rows else {"env_steps": 0, "wall_seconds": 0}
+        count = max(progress.stat_count, 1)
+        recent = progress.recent_returns
+        progress.rows.append(
+            {
+                "env_steps": progress.env_steps,
+                "wall_seconds": round(progress.wall_seconds, 1),
+                "updates": progress.updates,
+                "episodes": progress.episodes,
+                "eval_return_mean": round(float(returns.mean()), 2),
+                "eval_return_std": round(float(returns.std()), 2),
+                "train_return": round(float(np.mean(recent)), 2) if recent else "",
+                **{
+                    name: float(f"{progress.stat_sums[name] / count:.5g}")
+                    if name in progress.stat_sums
+                    else ""
+                    for name in UPDATE_STATS
+                },
+                "steps_per_second": round(
+                    (progress.env_steps - previous["env_steps"])
+                    / max(progress.wall_seconds - previous["wall_seconds"], 1e-9),
+                    2,
+                ),
+            }
+        )
+        recent.clear()
+        progress.stat_sums, progress.stat_count = {}, 0
+        nets.write_text(run_dir / "progress.csv", progress_csv(progress.rows))
+        log(
+            f"eval   env steps {progress.env_steps:9d}  wall {progress.wall_seconds:9.1f} s  "
+            f"return {returns.mean():8.1f} ± {returns.std():6.1f}"
+            + ("  (best, saved)" if improved else "")
+        )
+
+    started = time.perf_counter() - progress.wall_seconds
+    last_checkpoint = last_log = time.perf_counter()
+    steps_at_log, updates_at_log = progress.env_steps, progress.updates
+    observation, episode_return = None, 0.0
+    # One BLAS thread: with the cores shared, two made an update 20x slower (README).
+    with threadpool_limits(limits=1, user_api="blas"), env, eval_env:
+        while progress.env_steps < config.steps:
+            if observation is None:  # a new episode; checkpoints are taken only here
+                observation, _ = env.reset(seed=int(rng.integers(2**31)))
+                episode_return = 0.0
+            if progress.env_steps < config.learning_starts:
+                action = rng.uniform(-1.0, 1.0, dim_a).astype(np.float32)
+            else:
+                state = observation[None].astype(np.float32)  # (1, dim S)
+                noise = rng.standard_normal((1, dim_a), dtype=np.float32)
+                action = sample_actions(agent.policy, state, noise)[0][0]  # (dim A,)
+            next_observation, reward, terminated, truncated, _ = env.step(
+                expert.tanh_to_bounds(action, low, high)
+            )
+            # Only a true termination stops the bootstrap; a time limit does not.
+            replay.add(observation, action, reward, next_observation, terminated)
+            progress.env_steps += 1
+            episode_return += float(reward)
+            observation = next_observation
+
+            if progress.env_steps >= config.learning_starts:
+                stats = update(agent, replay.sample(rng, config.batch_size), config, rng)
+                progress.updates += 1
+                for name in UPDATE_STATS:
+                    progress.stat_sums[name] = progress.stat_sums.get(name, 0.0) + stats[name]
+                progress.stat_count += 1
+
+            if progress.env_steps % config.eval_every == 0 or progress.env_steps == config.steps:
+                evaluate_now()
+
+            now = time.perf_counter()
+            progress.wall_seconds = now - started
+            if now - last_log >= config.log_every:
+                log(
+                    f"train  env steps {progress.env_steps:9d}  wall {progress.wall_seconds:9.1f} s"
+                    f"  {(progress.env_steps - steps_at_log) / (now - last_log):6.1f} steps/s"
+                    f"  {(progress.updates - updates_at_log) / (now - last_log):6.1f} updates/s"
+                    f"  alpha {agent.alpha:.4f}  episodes {progress.episodes}"
+                    + (
+                        f"  recent return {np.mean(progress.recent_returns):.1f}"
+                        if progress.recent_returns
+                        else ""
+                    )
+                )
+                last_log, steps_at_log, updates_at_log = now, progress.env_steps, progress.updates
+
+            if terminated or truncated:
+                progress.recent_returns.append(episode_return)
+                progress.episodes += 1
+                observation = None
+                if now - last_checkpoint >= config.checkpoint_every:
+                    save_checkpoint(run_dir, agent, replay, progress, rng)
+                    last_checkpoint = time.perf_counter()
+        save_checkpoint(run_dir, agent, replay, progress, rng)  # at the budget's end
+    log(
+        f"done: {progress.env_steps} env steps; best eval return {progress.best_return:.1f} "
+        f"± {progress.best_return_std:.1f} at {progress.best_env_steps} env steps; "
+        f"expert in {expert_path}"
+    )
+    return progress
