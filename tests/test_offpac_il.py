@@ -289,7 +289,7 @@ def test_resume_reproduces_an_uninterrupted_run(tmp_path, hopper_demos, monkeypa
 
     interrupted = tmp_path / "interrupted"
     with monkeypatch.context() as patch:
-        patch.setattr(offpac_il, "run_episode", interrupted_after(7))
+        patch.setattr(offpac_il, "run_episode", interrupted_after(3))
         with pytest.raises(KeyboardInterrupt):
             offpac_il.train(tiny_config(interrupted, hopper_demos))
     partial = read_progress(interrupted)
@@ -804,3 +804,15 @@ def test_each_ablation_runs_from_the_command_line_and_resumes(
         assert saved["episodes"] == episodes and 0 < saved["interactions"] < interactions[-1]
         offpac_il.train(tiny_config(interrupted, hopper_demos, extra=selector), resume=True)
     assert read_progress(interrupted) == rows
+
+
+def test_paper_flag_restores_appendix_b_and_explicit_flags_win():
+    defaults = offpac_il.parse_args([])
+    assert defaults.policy_expert_states == 0.5 and defaults.policy_lr == 3e-5
+    paper = offpac_il.parse_args(["--paper"])
+    for name, value in offpac_il.PAPER_SETTINGS.items():
+        assert getattr(paper, name) == value
+    assert (paper.policy_lr, paper.critic_lr, paper.policy_expert_states) == (1e-4, 1e-3, 0.0)
+    mixed = offpac_il.parse_args(["--critic-lr", "5e-4", "--paper"])
+    assert (mixed.critic_lr, mixed.policy_lr) == (5e-4, 1e-4)
+    assert paper.noise_samples == defaults.noise_samples == 128  # gradient (6) as specified
