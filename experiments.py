@@ -548,9 +548,23 @@ def load_runs(root) -> list[Run]:
     return [load_run(p.parent) for p in sorted(resolve(root).rglob("progress.csv"))]
 
 
+def final_row(run: Run) -> int:
+    """The progress row that evaluated policy_final.npz: the last one, except for BC,
+    whose final policy is the early-stopped one of `best_update` (diagnostics.csv)."""
+    diagnostics = run.run_dir / "diagnostics.csv"
+    if run.finished and diagnostics.exists() and "updates" in run.progress:
+        with open(diagnostics) as f:
+            rows = list(csv.DictReader(f))
+        if rows and rows[-1].get("best_update"):
+            chosen = np.flatnonzero(run.progress["updates"] == float(rows[-1]["best_update"]))
+            if chosen.size:
+                return int(chosen[-1])
+    return -1
+
+
 def summarize(runs: Iterable[Run]) -> list[dict]:
     """One row per run: its labels, how far it got, and its final and best normalised
-    score (final: the last evaluation; best: the highest one)."""
+    score (final: the evaluation of the final policy, `final_row`; best: the highest)."""
     rows = []
     for run in runs:
         p = run.progress
@@ -563,7 +577,7 @@ def summarize(runs: Iterable[Run]) -> list[dict]:
                 "interactions": int(p["interactions"][-1]) if p else 0,
                 "wall_seconds": float(p["wall_seconds"][-1]) if p else 0.0,
                 "evaluations": len(scores),
-                "final_score": float(scores[-1]) if has_score else np.nan,
+                "final_score": float(scores[final_row(run)]) if has_score else np.nan,
                 "best_score": float(np.nanmax(scores)) if has_score else np.nan,
                 "run_dir": str(run.run_dir),
             }

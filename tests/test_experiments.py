@@ -370,3 +370,19 @@ def test_module_runs_as_a_script():
         [sys.executable, "experiments.py", "--help"], cwd=ROOT, capture_output=True, text=True
     )
     assert done.returncode == 0 and "sweep" in done.stdout and "figures" in done.stdout
+
+
+def test_bc_final_score_is_the_early_stopped_policys(tmp_path):
+    """BC's policy_final.npz is the policy of `best_update`, not the last evaluated one."""
+    run_dir = tmp_path / "bc"
+    run_dir.mkdir()
+    (run_dir / "progress.csv").write_text(
+        "interactions,wall_seconds,updates,normalized_score\n0,1,0,0.1\n0,2,250,0.9\n0,3,500,0.4\n"
+    )
+    (run_dir / "diagnostics.csv").write_text("updates,best_update\n250,250\n500,250\n")
+    (run_dir / "policy_final.npz").write_bytes(b"")
+    [row] = experiments.summarize([experiments.load_run(run_dir)])
+    assert (row["final_score"], row["best_score"]) == (0.9, 0.9)
+    (run_dir / "diagnostics.csv").unlink()  # any other method: the last evaluation
+    [row] = experiments.summarize([experiments.load_run(run_dir)])
+    assert row["final_score"] == 0.4
