@@ -41,7 +41,7 @@ hidden units are leaky ReLU (slope 0.01) instead of ReLU, and weights start from
 (Glorot) uniform instead of PyTorch's default. Observations are not normalised (neither
 library does for SAC).
 
-Files in the run directory (outside the repository or under the git-ignored ``runs/``):
+Files in the run directory (by default under the git-ignored ``runs/``):
 ``config.json``, ``progress.csv`` (one row per evaluation), ``checkpoint.npz`` (everything
 needed to continue: networks, targets, optimisers, alpha, the filled part of the replay
 buffer in float32, the Generator's state, counters and progress rows; written atomically at
