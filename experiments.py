@@ -760,11 +760,13 @@ def _curve_panel(ax, runs: Sequence[Run], methods: Sequence[str], x: str, csv_ro
     methods' budgets differ a hundredfold (GAIL's millions of interactions)."""
     bands, levels = {}, {}
     for method in methods:
-        group = [r.progress for r in runs if r.labels.get("method") == method and r.progress]
+        chosen = [r for r in runs if r.labels.get("method") == method and r.progress]
+        group = [r.progress for r in chosen]
         if group:
             band = interpolated_band(group, x, "normalized_score")
             if band is None:
-                levels[method] = (np.mean([g["normalized_score"][-1] for g in group]), len(group))
+                finals = [r.progress["normalized_score"][final_row(r)] for r in chosen]
+                levels[method] = (np.mean(finals), len(group))
             else:
                 bands[method] = band
     ends = [band[0][-1] for band in bands.values()]
