@@ -399,9 +399,10 @@ def plan(quick: bool, root) -> list[RunSpec]:
 
     quick: Hopper-v4, seeds 0 and 1, 1 and 4 trajectories, sparse and dense, every method
     at QUICK_ARGS (seconds per run), and the ablations at 4 sparse trajectories.
-    full: the paper's settings (each script's defaults): every task with an expert, 3
-    seeds (Sec. 5.1: "three experiments on each task"), 1, 4, 7 and 10 trajectories (the
-    paper does not list its counts), sparse and dense; the ablations at 4 sparse
+    full: each script's defaults (offpac_il.py's: Appendix B with the README's two
+    measured deviations): every task with an expert, 3 seeds (Sec. 5.1: "three
+    experiments on each task"), 1, 4, 7 and 10 trajectories (the paper does not list its
+    counts), sparse and dense; the ablations at 4 sparse
     trajectories on Ant-v4 (the paper's Figure 4) once its expert exists, else Hopper-v4.
     Figures 3 and 4 reuse the Figure 2 runs of their setting (Ours at 4 sparse
     trajectories): no run is made twice.
