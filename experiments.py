@@ -51,7 +51,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Executor, ThreadPoolExecutor, wait
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -678,7 +678,7 @@ def _save(fig, out_png) -> Path:
     out_png = Path(out_png)
     out_png.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
-    fig.savefig(out_png, dpi=110)
+    fig.savefig(out_png, dpi=110, bbox_inches="tight")  # legends may sit outside the axes
     plt.close(fig)
     return out_png
 
@@ -857,12 +857,15 @@ def group_runs(run_dirs, label_by: list[str]) -> dict[str, list[Path]]:
     """Runs grouped by the values of the config keys in `label_by` (seeds pooled)."""
     import offpac_il
 
-    # A run made before a setting existed ran with that setting's default.
-    defaults = {f.name: f.default for f in fields(offpac_il.Config)}
+    configs = {
+        run_dir: asdict(offpac_il.saved_config(read_config(run_dir)))
+        for run_dir in map(Path, run_dirs)
+    }
+    # Only the keys whose values differ between the runs tell the groups apart.
+    varying = [k for k in label_by if len({str(c.get(k)) for c in configs.values()}) > 1]
     groups: dict[str, list[Path]] = defaultdict(list)
-    for run_dir in map(Path, run_dirs):
-        config = {**defaults, **read_config(run_dir)}
-        label = ", ".join(f"{k}={config.get(k)}" for k in label_by) or config["env"]
+    for run_dir, config in configs.items():
+        label = ", ".join(f"{k}={config.get(k)}" for k in varying) or config["env"]
         groups[label].append(run_dir)
     return dict(groups)
 
@@ -876,7 +879,8 @@ def plot_curves(
 ) -> None:
     """One line per group (mean over seeds) with the min-max band over seeds."""
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(7, 4))
+    # The legend goes below the axes, one line per group, so long labels never cover it.
+    fig, ax = plt.subplots(figsize=(8, 4 + 0.22 * len(groups)))
     for label, run_dirs in groups.items():
         runs = [read_progress(d) for d in run_dirs]
         runs = [r for r in runs if r]
@@ -890,7 +894,7 @@ def plot_curves(
     ax.set_xlabel(x.replace("_", " "))
     ax.set_ylabel(y.replace("_", " "))
     ax.set_title(title)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.15))
     ax.grid(alpha=0.3)
     _save(fig, out_png)
 

@@ -137,6 +137,18 @@ class Config:
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
 PAPER_SETTINGS = {"policy_lr": 1e-4, "critic_lr": 1e-3, "policy_expert_states": 0.0}
 
+
+def saved_config(saved: dict) -> Config:
+    """The Config of a run's config.json. A setting the file lacks did not exist when the
+    run was made, so the run had that setting's behaviour from before it existed: the
+    paper's (PAPER_SETTINGS), not today's default."""
+    known = {f.name for f in dataclasses.fields(Config)}
+    values = {**PAPER_SETTINGS, **saved}
+    return Config(
+        **{k: tuple(v) if isinstance(v, list) else v for k, v in values.items() if k in known}
+    )
+
+
 TERMINATIONS = ("bootstrap", "absorbing", "zero")
 SAMPLINGS = ("sparse", "dense")
 REWARD_LEARNINGS = ("none", "discriminator", "entropy")
@@ -1181,8 +1193,7 @@ def main(argv: list[str] | None = None) -> int:
                 ) from None
             if not (run_dir / "checkpoint.npz").exists():
                 raise UserError(f"{run_dir} holds no checkpoint to resume from")
-            saved = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()}
-            config = Config(**{**saved, "run_dir": str(run_dir)})
+            config = saved_config({**saved, "run_dir": str(run_dir)})
         else:
             config = Config(
                 **{

@@ -816,3 +816,16 @@ def test_paper_flag_restores_appendix_b_and_explicit_flags_win():
     mixed = offpac_il.parse_args(["--critic-lr", "5e-4", "--paper"])
     assert (mixed.critic_lr, mixed.policy_lr) == (5e-4, 1e-4)
     assert paper.noise_samples == defaults.noise_samples == 128  # gradient (6) as specified
+
+
+def test_a_config_saved_before_a_setting_existed_keeps_the_papers_behaviour():
+    """config.json of an old run lacks policy_expert_states: that run drew its policy
+    states from the replay only, and must resume (and be labelled) that way."""
+    saved = dataclasses.asdict(offpac_il.Config(policy_lr=1e-4, critic_lr=1e-3))
+    del saved["policy_expert_states"]
+    saved["policy_hidden"] = list(saved["policy_hidden"])  # as JSON gives it back
+    config = offpac_il.saved_config(saved)
+    assert config.policy_expert_states == 0.0
+    assert config.policy_hidden == (100, 100)
+    saved["policy_expert_states"] = 0.5
+    assert offpac_il.saved_config(saved).policy_expert_states == 0.5
