@@ -289,53 +289,8 @@ class GaussianSpaces(offpac_il.Spaces):
 
 
 # ----------------------------------------------------------------------------------------
-# Optimiser. PPO and BC as published use Adam; nets.py has RMSProp only.
+# Optimiser: PPO and BC as published use Adam (nets.Adam, shared with sac.py).
 # ----------------------------------------------------------------------------------------
-
-
-@dataclass
-class Adam:
-    """Adam (Kingma & Ba, 2015), with the same interface as nets.RMSProp.
-
-    m <- b1 m + (1 - b1) g;   v <- b2 v + (1 - b2) g^2;   t <- t + 1
-    param <- param - lr * (m / (1 - b1^t)) / (sqrt(v / (1 - b2^t)) + eps)
-    """
-
-    beta1: float = 0.9
-    beta2: float = 0.999
-    eps: float = 1e-8
-    steps: int = 0
-    first: dict[str, np.ndarray] = field(default_factory=dict)
-    second: dict[str, np.ndarray] = field(default_factory=dict)
-
-    def step(self, params: dict[str, np.ndarray], grads: dict[str, np.ndarray], lr: float):
-        self.steps += 1
-        correction1 = 1.0 - self.beta1**self.steps
-        correction2 = 1.0 - self.beta2**self.steps
-        for name, grad in grads.items():
-            m = self.first.setdefault(name, np.zeros_like(params[name]))
-            v = self.second.setdefault(name, np.zeros_like(params[name]))
-            m *= self.beta1
-            m += (1.0 - self.beta1) * grad
-            v *= self.beta2
-            v += (1.0 - self.beta2) * (grad * grad)
-            params[name] -= lr * (m / correction1) / (np.sqrt(v / correction2) + self.eps)
-
-    def state(self, prefix: str) -> dict[str, np.ndarray]:
-        return {
-            f"{prefix}/steps": np.array(self.steps),
-            **{f"{prefix}/m/{name}": value for name, value in self.first.items()},
-            **{f"{prefix}/v/{name}": value for name, value in self.second.items()},
-        }
-
-    def load_state(self, arrays, prefix: str) -> None:
-        self.steps = int(arrays[f"{prefix}/steps"])
-        for moment, store in (("m", self.first), ("v", self.second)):
-            head = f"{prefix}/{moment}/"
-            store.clear()
-            store.update(
-                {k.removeprefix(head): np.array(arrays[k]) for k in arrays if k.startswith(head)}
-            )
 
 
 def clip_global_norm(grads: dict[str, np.ndarray], max_norm: float) -> float:
@@ -519,7 +474,7 @@ class NoBuffer:
 @dataclass
 class BCAgent:
     policy: GaussianPolicy
-    optimizer: Adam
+    optimizer: nets.Adam
     best_policy: GaussianPolicy  # the parameters with the best validation likelihood
     best_validation_nll: float = math.inf
     best_update: int = 0
@@ -554,9 +509,9 @@ class GAILAgent:
     policy: GaussianPolicy
     value: nets.MLP
     discriminator: nets.MLP
-    policy_optimizer: Adam = field(default_factory=Adam)
-    value_optimizer: Adam = field(default_factory=Adam)
-    discriminator_optimizer: Adam = field(default_factory=Adam)
+    policy_optimizer: nets.Adam = field(default_factory=nets.Adam)
+    value_optimizer: nets.Adam = field(default_factory=nets.Adam)
+    discriminator_optimizer: nets.Adam = field(default_factory=nets.Adam)
     diagnostics: list[dict] = field(default_factory=list)
 
     def state(self) -> dict[str, np.ndarray]:
@@ -806,7 +761,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> offpac_il.Progress:
     policy = GaussianPolicy.create(
         states.shape[1], actions.shape[1], config.policy_hidden, config.log_std_init, rng
     )
-    agent = BCAgent(policy, Adam(), policy.copy())
+    agent = BCAgent(policy, nets.Adam(), policy.copy())
     run.start(agent, rng, resume)
     progress, grad_norm = run.progress, math.nan
     while True:

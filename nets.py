@@ -484,7 +484,8 @@ class RMSProp:
 
 @dataclass
 class Adam:
-    """Adam (Kingma & Ba, 2015, Algorithm 1), the optimiser of the SAC experts (sac.py).
+    """Adam (Kingma & Ba, 2015, Algorithm 1): the optimiser of the SAC experts (sac.py) and
+    of the baselines (baselines.py).
 
         m     <- beta1 m + (1 - beta1) g                     (first moment)
         v     <- beta2 v + (1 - beta2) g^2                   (second moment)

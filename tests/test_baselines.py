@@ -379,14 +379,6 @@ def test_gae_check_catches_a_wrong_estimate():
         np.testing.assert_allclose(wrong, right, rtol=1e-12, atol=1e-12)
 
 
-def test_adam_first_step_moves_each_parameter_by_lr():
-    """With bias correction the first step is lr * g / (|g| + eps): lr * sign(g)."""
-    params = {"w": np.array([1.0, -2.0, 3.0])}
-    grads = {"w": np.array([0.5, -4.0, 1e-3])}
-    baselines.Adam().step(params, grads, 0.1)
-    np.testing.assert_allclose(params["w"], [0.9, -1.9, 2.9], rtol=1e-6)
-
-
 # ---------------------------------------------------------------------------------------
 # The command line, end to end on Hopper-v4 with tiny networks and budgets.
 # ---------------------------------------------------------------------------------------
