@@ -23,6 +23,8 @@ cores.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import os
 import tempfile
 from concurrent.futures import ThreadPoolExecutor
@@ -596,6 +598,32 @@ def write_text(path, text: str) -> None:
 def load_arrays(path) -> dict[str, np.ndarray]:
     with np.load(path, allow_pickle=False) as data:
         return {key: data[key] for key in data.files}
+
+
+def save_checkpoint(run_dir, state: dict[str, np.ndarray], rng, progress, progress_text: str):
+    """A training run's checkpoint.npz (the arrays of `state`, the Generator's state, the
+    counters and rows of the `progress` dataclass), written atomically; then progress.csv.
+    One file for everything, so a kill between the two writes leaves a consistent run."""
+    counters = {k: v for k, v in dataclasses.asdict(progress).items() if k != "rows"}
+    save_arrays(
+        Path(run_dir) / "checkpoint.npz",
+        {
+            **state,
+            "rng": np.array(json.dumps(rng.bit_generator.state)),
+            "counters": np.array(json.dumps(counters)),
+            "rows": np.array(json.dumps(progress.rows)),
+        },
+    )
+    write_text(Path(run_dir) / "progress.csv", progress_text)
+
+
+def load_checkpoint(run_dir, rng) -> tuple[dict[str, np.ndarray], dict, list[dict]]:
+    """(arrays, counters, rows) of save_checkpoint's file; restores `rng` in place.
+    progress.csv may hold rows written after the checkpoint: the checkpoint's own copy
+    of the rows is the truth, and a resumed run rewrites the file from it."""
+    arrays = load_arrays(Path(run_dir) / "checkpoint.npz")
+    rng.bit_generator.state = json.loads(str(arrays["rng"]))
+    return arrays, json.loads(str(arrays["counters"])), json.loads(str(arrays["rows"]))
 
 
 # ----------------------------------------------------------------------------------------

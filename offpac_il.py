@@ -974,32 +974,17 @@ def save_checkpoint(
     rng: np.random.Generator,
 ) -> None:
     """Everything needed to continue exactly, in one atomic file; then progress.csv."""
-    counters = {k: v for k, v in dataclasses.asdict(progress).items() if k != "rows"}
-    nets.save_arrays(
-        run_dir / "checkpoint.npz",
-        {
-            **learner.state(),
-            **replay.state(),
-            "rng": np.array(json.dumps(rng.bit_generator.state)),
-            "counters": np.array(json.dumps(counters)),
-            "rows": np.array(json.dumps(progress.rows)),
-        },
-    )
-    nets.write_text(run_dir / "progress.csv", progress_csv(progress.rows))
+    state = {**learner.state(), **replay.state()}
+    nets.save_checkpoint(run_dir, state, rng, progress, progress_csv(progress.rows))
 
 
 def load_checkpoint(
     run_dir: Path, learner: Learner, replay: ReplayBuffer, rng: np.random.Generator
 ) -> Progress:
-    arrays = nets.load_arrays(run_dir / "checkpoint.npz")
+    arrays, counters, rows = nets.load_checkpoint(run_dir, rng)
     learner.load_state(arrays)
     replay.load_state(arrays)
-    rng.bit_generator.state = json.loads(str(arrays["rng"]))
-    progress = Progress(**json.loads(str(arrays["counters"])))
-    # progress.csv may hold rows written after this checkpoint: the checkpoint's own
-    # copy of the rows is the truth, so a resumed run rewrites the file from it.
-    progress.rows = json.loads(str(arrays["rows"]))
-    return progress
+    return Progress(**counters, rows=rows)
 
 
 def train(config: Config, resume: bool = False) -> Progress:

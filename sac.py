@@ -494,34 +494,20 @@ def save_checkpoint(
     run_dir: Path, agent: Agent, replay: ReplayBuffer, progress: Progress, rng
 ) -> None:
     """Everything needed to continue exactly, in one atomic file; then progress.csv."""
-    counters = {k: v for k, v in dataclasses.asdict(progress).items() if k != "rows"}
-    nets.save_arrays(
-        run_dir / "checkpoint.npz",
-        {
-            **agent.state(),
-            **replay.state(),
-            "rng": np.array(json.dumps(rng.bit_generator.state)),
-            "counters": np.array(json.dumps(counters)),
-            "rows": np.array(json.dumps(progress.rows)),
-        },
-    )
-    nets.write_text(run_dir / "progress.csv", progress_csv(progress.rows))
+    state = {**agent.state(), **replay.state()}
+    nets.save_checkpoint(run_dir, state, rng, progress, progress_csv(progress.rows))
 
 
 def load_checkpoint(run_dir: Path, agent: Agent, replay: ReplayBuffer, rng) -> Progress:
-    path = run_dir / "checkpoint.npz"
     try:
-        arrays = nets.load_arrays(path)
+        arrays, counters, rows = nets.load_checkpoint(run_dir, rng)
         agent.load_state(arrays)
         replay.load_state(arrays)
-        rng.bit_generator.state = json.loads(str(arrays["rng"]))
-        progress = Progress(**json.loads(str(arrays["counters"])))
+        return Progress(**counters, rows=rows)
     except (OSError, ValueError, KeyError, EOFError) as error:
-        raise UserError(f"{path}: not a valid SAC checkpoint ({error})") from None
-    # progress.csv may hold rows written after this checkpoint: the checkpoint's own copy
-    # of the rows is the truth, and a resumed run rewrites the file from it.
-    progress.rows = json.loads(str(arrays["rows"]))
-    return progress
+        raise UserError(
+            f"{run_dir / 'checkpoint.npz'}: not a valid SAC checkpoint ({error})"
+        ) from None
 
 
 def expert_policy(env_id: str, agent: Agent, low, high) -> expert.ExpertPolicy:
