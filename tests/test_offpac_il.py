@@ -173,21 +173,27 @@ def test_policy_gradient_check_catches_a_wrong_gradient():
 # ---------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("termination", offpac_il.TERMINATIONS)
-def test_critic_targets(termination):
-    learner, config, rng = small_learner(3, termination=termination, target_samples=4)
+def targets_and_continuation(learner, config, rng):
+    """critic_targets on 6 random triplets (3 expert, 3 replay; terminal s' included),
+    and the same expectation written out: mean over 4 noise vectors of q'(s', a')^gamma,
+    0 at a terminal s' under zero continuation."""
     batch = random_triplets(rng, 6, terminal_fraction=0.5)
     batch.terminal[:2] = [True, False]
     from_replay = np.arange(6) >= 3
     t = offpac_il.critic_targets(learner, batch, from_replay, config, np.random.default_rng(9))
-
-    # The same expectation written out: mean over 4 noise vectors of q'(s', a')^gamma.
     noise = np.random.default_rng(9).standard_normal((6 * 4, 3), np.float32)
     next_states = np.repeat(batch.next_states, 4, axis=0)
     q_next, _ = learner.target_critic.forward((next_states, learner.act(next_states, noise)))
-    expected = (q_next[:, 0] ** config.gamma).reshape(6, 4).mean(axis=1)
-    if termination == "zero":
-        expected[batch.terminal] = 0.0
+    continuation = (q_next[:, 0] ** config.gamma).reshape(6, 4).mean(axis=1)
+    if config.termination == "zero":
+        continuation[batch.terminal] = 0.0
+    return t, continuation, batch, from_replay
+
+
+@pytest.mark.parametrize("termination", offpac_il.TERMINATIONS)
+def test_critic_targets(termination):
+    learner, config, rng = small_learner(3, termination=termination, target_samples=4)
+    t, expected, _, from_replay = targets_and_continuation(learner, config, rng)
     expected[from_replay] /= 2
     np.testing.assert_allclose(t, expected, rtol=1e-10)
     assert np.all((t >= 0) & (t <= 1))
@@ -503,17 +509,7 @@ def test_reward_objectives_move_r_where_the_paper_says():
 def test_critic_targets_with_a_learned_reward(termination):
     """t = r_omega(s, a) mean_k q'(s', a'_k)^gamma on every row (Eq. 13 in 15): no /2."""
     learner, config, rng = reward_learner(3, termination=termination, target_samples=4)
-    batch = random_triplets(rng, 6, terminal_fraction=0.5)
-    batch.terminal[:2] = [True, False]
-    from_replay = np.arange(6) >= 3
-    t = offpac_il.critic_targets(learner, batch, from_replay, config, np.random.default_rng(9))
-
-    noise = np.random.default_rng(9).standard_normal((6 * 4, 3), np.float32)
-    next_states = np.repeat(batch.next_states, 4, axis=0)
-    q_next, _ = learner.target_critic.forward((next_states, learner.act(next_states, noise)))
-    expected = (q_next[:, 0] ** config.gamma).reshape(6, 4).mean(axis=1)
-    if termination == "zero":
-        expected[batch.terminal] = 0.0
+    t, expected, batch, _ = targets_and_continuation(learner, config, rng)
     r, _ = learner.reward.forward((batch.states, batch.actions))
     np.testing.assert_allclose(t, r[:, 0] * expected, rtol=1e-10)
 
