@@ -20,6 +20,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 import sac
+from benchmarks.update import time_gemm_floor
 
 STATE_DIM, ACTION_DIM = 17, 6
 
@@ -48,23 +49,6 @@ def gemm_shapes(batch: int, hidden: int) -> list[tuple[int, int, int]]:
     )
 
 
-def time_gemms(shapes, repeats: int) -> float:
-    """Seconds for all products once, each measured as the best of `repeats`."""
-    rng = np.random.default_rng(0)
-    total = 0.0
-    for rows, inner, cols in shapes:
-        left = rng.standard_normal((rows, inner), dtype=np.float32)
-        right = rng.standard_normal((inner, cols), dtype=np.float32)
-        out = np.empty((rows, cols), np.float32)
-        best = np.inf
-        for _ in range(repeats):
-            start = time.perf_counter()
-            np.matmul(left, right, out=out)
-            best = min(best, time.perf_counter() - start)
-        total += best
-    return total
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=300)
@@ -90,7 +74,8 @@ def main() -> None:
             sac.update(agent, replay.sample(rng, config.batch_size), config, rng)
         wall = (time.perf_counter() - wall) / args.repeats
         cpu = (time.process_time() - cpu) / args.repeats
-        floor = time_gemms(gemm_shapes(config.batch_size, config.hidden[0]), 20)
+        shapes = gemm_shapes(config.batch_size, config.hidden[0])
+        floor = time_gemm_floor(shapes, np.random.default_rng(0), 20, (args.threads,))
     flops = 2 * sum(r * i * c for r, i, c in gemm_shapes(config.batch_size, config.hidden[0]))
     print(f"one update: {1e3 * wall:.2f} ms wall, {1e3 * cpu:.2f} ms CPU ({args.threads} thread)")
     print(f"GEMM floor: {1e3 * floor:.2f} ms for {flops / 1e6:.0f} MFLOP")

@@ -88,15 +88,16 @@ def gemm_shapes(config: offpac_il.Config) -> list[tuple[int, int, int]]:
     return shapes
 
 
-def time_gemm_floor(shapes, rng, repeats: int) -> float:
+def time_gemm_floor(shapes, rng, repeats: int, thread_counts=None) -> float:
     """Sum over the shapes of each product's median time, with the BLAS thread count
-    (one, or all cores) that is faster for that shape: the best NumPy can do."""
+    of `thread_counts` (default: one, or all cores) that is faster for that shape: the
+    best NumPy can do."""
     total = 0.0
     for m, k, n in shapes:
-        a = rng.standard_normal((m, k), dtype=np.float32)
+        a = rng.standard_normal((m, k), dtype=np.float32)  # (m, k) @ (k, n)
         b = rng.standard_normal((k, n), dtype=np.float32)
         candidates = []
-        for threads in sorted({1, os.cpu_count() or 1}):
+        for threads in sorted(set(thread_counts or {1, os.cpu_count() or 1})):
             with threadpool_limits(limits=threads, user_api="blas"):
                 candidates.append(median_seconds(lambda a=a, b=b: np.matmul(a, b), repeats))
         total += min(candidates)
