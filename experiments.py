@@ -532,13 +532,39 @@ class Run:
 LABEL_KEYS = ("method", "env", "sampling", "trajectories", "seed")
 
 
+# The switches of offpac_il.py's Config that turn Ours into one of its ablations.
+ABLATION_SWITCHES = ("on_policy", "reward_learning", "policy_type")
+
+
+def method_of(config: dict) -> str:
+    """The METHODS name of a run made by hand, from its config.json: baselines.py saves
+    its subcommand as "method"; an offpac_il.py run is Ours or the ablation whose switches
+    it has (a mix of switches is named by them)."""
+    import offpac_il
+
+    if "method" in config:
+        for name, (script, selector) in METHODS.items():
+            if script == "baselines.py" and selector == (config["method"],):
+                return name
+        return str(config["method"])
+    config = asdict(offpac_il.saved_config(config))  # older runs lack newer switches
+    for name, (script, selector) in METHODS.items():
+        if script == "offpac_il.py":
+            flags = vars(offpac_il.parse_args(list(selector)))
+            if all(flags[k] == config[k] for k in ABLATION_SWITCHES):
+                return name
+    ours = vars(offpac_il.parse_args([]))
+    return "Ours+" + ",".join(f"{k}={config[k]}" for k in ABLATION_SWITCHES if config[k] != ours[k])
+
+
 def load_run(run_dir) -> Run:
-    """Labels from sweep.json, else from config.json (a hand-made run of Ours)."""
+    """Labels from sweep.json, else from config.json (a run made by hand)."""
     run_dir = Path(run_dir)
     labels = {"method": "Ours"}
     if (run_dir / "config.json").exists():
         config = read_config(run_dir)
         labels.update({k: config[k] for k in LABEL_KEYS if k in config})
+        labels["method"] = method_of(config)
     if (run_dir / SPEC_FILE).exists():
         labels.update(json.loads((run_dir / SPEC_FILE).read_text())["labels"])
     return Run(run_dir, labels, read_progress(run_dir), (run_dir / FINISHED).exists())

@@ -386,3 +386,21 @@ def test_bc_final_score_is_the_early_stopped_policys(tmp_path):
     (run_dir / "diagnostics.csv").unlink()  # any other method: the last evaluation
     [row] = experiments.summarize([experiments.load_run(run_dir)])
     assert row["final_score"] == 0.4
+
+
+def test_a_run_made_by_hand_is_named_by_its_config():
+    """load_run names a run without sweep.json from config.json: every method of METHODS
+    comes back as itself, and a mix of ablation switches is named by those switches."""
+    import dataclasses
+
+    import offpac_il
+
+    for name, (script, selector) in experiments.METHODS.items():
+        if script == "offpac_il.py":
+            args = vars(offpac_il.parse_args(list(selector)))
+            config = {f.name: args[f.name] for f in dataclasses.fields(offpac_il.Config)}
+        else:
+            config = {"method": selector[0]}
+        assert experiments.method_of(config) == name
+    mixed = experiments.method_of({"on_policy": True, "policy_type": "gaussian"})
+    assert mixed == "Ours+on_policy=True,policy_type=gaussian"
