@@ -33,7 +33,7 @@ Command line:
 
     python experiments.py sweep quick|full [--runs DIR] [--workers N] [--scheduler ADDRESS]
                                            [--methods BC GAIL ...] [--envs Hopper-v4 ...]
-    python experiments.py figures quick|full [--runs DIR] [--out DIR]
+    python experiments.py figures quick|full [--runs DIR [DIR ...]] [--out DIR]
     python experiments.py curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination]
 """
 
@@ -570,9 +570,11 @@ def load_run(run_dir) -> Run:
     return Run(run_dir, labels, read_progress(run_dir), (run_dir / FINISHED).exists())
 
 
-def load_runs(root) -> list[Run]:
-    """Every run directory (one with a progress.csv) under root, sorted by path."""
-    return [load_run(p.parent) for p in sorted(resolve(root).rglob("progress.csv"))]
+def load_runs(*roots) -> list[Run]:
+    """Every run directory (one with a progress.csv) under any of the roots (a root may
+    be a run directory itself), each once, sorted by path."""
+    found = {p.parent for root in roots for p in resolve(root).rglob("progress.csv")}
+    return [load_run(run_dir) for run_dir in sorted(found)]
 
 
 def final_row(run: Run) -> int:
@@ -933,9 +935,10 @@ DEFAULT_RUNS = {"quick": "runs/quick", "full": "runs/sweep"}
 DEFAULT_FIGURES = {"quick": "runs/quick/figures", "full": "figures"}
 
 
-def draw_figures(runs_root, out_dir) -> dict[str, Path | None]:
-    """Figures 2-4 from the runs under runs_root into out_dir (None: nothing to draw)."""
-    runs = load_runs(runs_root)
+def draw_figures(runs_roots, out_dir) -> dict[str, Path | None]:
+    """Figures 2-4 from the runs under runs_roots (one root or several) into out_dir
+    (None: nothing to draw)."""
+    runs = load_runs(*([runs_roots] if isinstance(runs_roots, str | Path) else runs_roots))
     out_dir = resolve(out_dir)
     return {
         "figure2": figure2(runs, out_dir / "figure2.png"),
@@ -963,7 +966,9 @@ def main(argv=None) -> int:
     run.add_argument("--envs", nargs="+", default=[], help="only these tasks (default: all)")
     figures = sub.add_parser("figures", help="Figures 2-4 (PNG and CSV) from the runs")
     figures.add_argument("mode", choices=("quick", "full"))
-    figures.add_argument("--runs", help="root of the run directories")
+    figures.add_argument(
+        "--runs", nargs="+", help="roots of the run directories, or run directories"
+    )
     figures.add_argument("--out", help="folder of the figures (full: figures/)")
     curves = sub.add_parser("curves", help="normalised score vs interactions, PNG")
     curves.add_argument("out")

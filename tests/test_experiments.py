@@ -277,6 +277,10 @@ def test_figures_write_png_and_csv(tmp_path):
 
     runs = experiments.load_runs(runs_root)
     assert len(runs) == 27
+    # Several roots, one a run directory under another: each run is read once.
+    assert [r.run_dir for r in experiments.load_runs(runs_root, unfinished)] == [
+        r.run_dir for r in runs
+    ]
     figures = experiments.draw_figures(runs_root, out)
     assert all(is_png(path) for path in figures.values())
     table = (out / "figure2.csv").read_text().splitlines()
