@@ -43,9 +43,10 @@ library does for SAC).
 
 Files in the run directory (by default under the git-ignored ``runs/``):
 ``config.json``, ``progress.csv`` (one row per evaluation), ``checkpoint.npz`` (everything
-needed to continue: networks, targets, optimisers, alpha, the filled part of the replay
-buffer in float32, the Generator's state, counters and progress rows; written atomically at
-the end of an episode every ``checkpoint_every`` seconds). The best evaluated policy goes
+needed to continue: networks, targets, optimisers, alpha, the Generator's state, counters
+and progress rows; written atomically at the end of an episode every ``checkpoint_every``
+seconds) and ``replay/`` (the replay buffer in float32, one file per checkpoint holding
+the transitions added since the previous one). The best evaluated policy goes
 to the expert file (default ``experts/<env>.npz``), in the format ``expert.load_expert``
 reads; evaluation is the deterministic policy a = tanh(mu(s)).
 """
@@ -403,42 +404,107 @@ def update(agent: Agent, batch: Batch, config: SACConfig, rng: np.random.Generat
 class ReplayBuffer:
     """A FIFO of the latest `capacity` transitions, float32, allocated once.
 
-    np.zeros maps untouched pages lazily, so a 10^6 buffer costs memory only as it fills;
-    `state` saves only the filled rows.
+    np.zeros maps untouched pages lazily, so a 10^6 buffer costs memory only as it fills.
+    Transition number t (counting from 0 over the whole run) lives in row t % capacity;
+    `added` counts them all.
+
+    Saved as segments (`save_new_rows`): each checkpoint writes only the transitions added
+    since the previous one to a file of its own, `SEGMENTS/<first>-<end>.npz`, and never
+    rewrites it. A checkpoint then costs what was added since the last one, not the whole
+    buffer (Humanoid's 10^6 rows would be 3 GB each time), and a run directory kept in
+    version control grows by the new rows only.
     """
 
     FIELDS = ("observations", "actions", "rewards", "next_observations", "terminated")
 
     def __init__(self, capacity: int, dim_s: int, dim_a: int):
-        self.capacity, self.size, self.next_index = capacity, 0, 0
+        self.capacity, self.added = capacity, 0
         self.observations = np.zeros((capacity, dim_s), np.float32)
         self.actions = np.zeros((capacity, dim_a), np.float32)
         self.rewards = np.zeros(capacity, np.float32)
         self.next_observations = np.zeros((capacity, dim_s), np.float32)
         self.terminated = np.zeros(capacity, np.float32)
 
+    @property
+    def size(self) -> int:
+        return min(self.added, self.capacity)
+
     def add(self, observation, action, reward: float, next_observation, terminated: bool):
-        i = self.next_index
+        i = self.added % self.capacity
         self.observations[i], self.actions[i], self.rewards[i] = observation, action, reward
         self.next_observations[i], self.terminated[i] = next_observation, terminated
-        self.next_index = (i + 1) % self.capacity
-        self.size = min(self.size + 1, self.capacity)
+        self.added += 1
 
     def sample(self, rng: np.random.Generator, n: int) -> Batch:
         rows = rng.integers(0, self.size, n)  # uniform, with replacement
         return Batch(*(getattr(self, name)[rows] for name in self.FIELDS))
 
-    def state(self) -> dict[str, np.ndarray]:
-        arrays = {f"replay/{name}": getattr(self, name)[: self.size] for name in self.FIELDS}
-        arrays["replay/size_next"] = np.array([self.size, self.next_index])
-        return arrays
+    @staticmethod
+    def segments(folder: Path) -> list[tuple[int, int, Path]]:
+        """(first, end, path) of the segment files in folder, by first transition."""
+        found = []
+        for path in Path(folder).glob("*-*.npz"):
+            first, _, end = path.stem.partition("-")
+            if first.isdigit() and end.isdigit():
+                found.append((int(first), int(end), path))
+        return sorted(found)
 
-    def load_state(self, arrays) -> None:
-        self.size, self.next_index = (int(v) for v in arrays["replay/size_next"])
-        if self.size > self.capacity:
+    def save_new_rows(self, folder: Path) -> None:
+        """Write the transitions not yet in a segment of folder (before the checkpoint
+        that counts them, so that a checkpoint never names rows that are not on disk)."""
+        oldest = self.added - self.size
+        saved = max([end for _, end, _ in self.segments(folder) if end <= self.added] or [0])
+        first = max(saved, oldest)
+        if first == self.added:
+            return
+        rows = np.arange(first, self.added) % self.capacity
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        nets.save_arrays(
+            Path(folder) / f"{first:010d}-{self.added:010d}.npz",
+            {name: getattr(self, name)[rows] for name in self.FIELDS},
+        )
+
+    def prune(self, folder: Path) -> None:
+        """Delete the segments wholly older than the buffer's oldest transition (after
+        the checkpoint that no longer needs them)."""
+        for _, end, path in self.segments(folder):
+            if end <= self.added - self.size:
+                path.unlink()
+
+    def load_rows(self, folder: Path, added: int) -> None:
+        """Refill the buffer as it was after `added` transitions from folder's segments.
+
+        Every segment ends where some checkpoint's count was, so one that ends beyond
+        `added` was written by a run killed before its next checkpoint: it is deleted, and
+        the resumed run writes those transitions again."""
+        self.added = added
+        filled = added - self.size  # the oldest transition the buffer holds
+        for first, end, path in self.segments(folder):
+            if end > added:
+                path.unlink()
+                continue
+            if end <= filled:
+                continue
+            if first > filled:
+                break  # a gap: reported below
+            arrays = nets.load_arrays(path)
+            rows = np.arange(filled, end) % self.capacity
+            for name in self.FIELDS:
+                getattr(self, name)[rows] = arrays[name][filled - first : end - first]
+            filled = end
+        if filled < added:
+            raise UserError(
+                f"{folder}: the replay buffer's transitions {filled}..{added - 1} are missing"
+            )
+
+    def load_whole(self, arrays) -> None:
+        """The buffer of a checkpoint that held all of it (as before segments existed)."""
+        size, next_index = (int(v) for v in arrays["replay/size_next"])
+        if size > self.capacity:
             raise UserError(f"checkpoint's replay buffer holds more than {self.capacity} rows")
+        self.added = size if size < self.capacity else self.capacity + next_index
         for name in self.FIELDS:
-            getattr(self, name)[: self.size] = arrays[f"replay/{name}"]
+            getattr(self, name)[:size] = arrays[f"replay/{name}"]
 
 
 # ----------------------------------------------------------------------------------------
@@ -490,19 +556,30 @@ def progress_csv(rows: list[dict]) -> str:
     return out.getvalue()
 
 
+REPLAY_SEGMENTS = "replay"  # the folder of the replay buffer's segments in a run directory
+
+
 def save_checkpoint(
     run_dir: Path, agent: Agent, replay: ReplayBuffer, progress: Progress, rng
 ) -> None:
-    """Everything needed to continue exactly, in one atomic file; then progress.csv."""
-    state = {**agent.state(), **replay.state()}
+    """Everything needed to continue exactly: the replay buffer's new rows in a segment
+    of their own, then one atomic checkpoint file (networks, Generator, counters, the
+    number of transitions), then progress.csv; last, the segments no longer needed go."""
+    segments = Path(run_dir) / REPLAY_SEGMENTS
+    replay.save_new_rows(segments)
+    state = {**agent.state(), "replay/added": np.array(replay.added)}
     nets.save_checkpoint(run_dir, state, rng, progress, progress_csv(progress.rows))
+    replay.prune(segments)
 
 
 def load_checkpoint(run_dir: Path, agent: Agent, replay: ReplayBuffer, rng) -> Progress:
     try:
         arrays, counters, rows = nets.load_checkpoint(run_dir, rng)
         agent.load_state(arrays)
-        replay.load_state(arrays)
+        if "replay/added" in arrays:
+            replay.load_rows(Path(run_dir) / REPLAY_SEGMENTS, int(arrays["replay/added"]))
+        else:
+            replay.load_whole(arrays)
         return Progress(**counters, rows=rows)
     except (OSError, ValueError, KeyError, EOFError) as error:
         raise UserError(

@@ -313,6 +313,77 @@ def test_temperature_moves_towards_the_target_entropy():
 # Runs: resume, learning, the expert file and the command line.
 # ---------------------------------------------------------------------------------------
 
+
+def numbered_transitions(replay: sac.ReplayBuffer, count: int, offset: float = 0.0) -> None:
+    """Add `count` transitions whose fields all hold their number (plus offset)."""
+    for _ in range(count):
+        t = replay.added + offset
+        replay.add([t, -t], [t], t, [t + 1, -t - 1], t % 2)
+
+
+def assert_same_buffer(loaded: sac.ReplayBuffer, original: sac.ReplayBuffer) -> None:
+    assert (loaded.added, loaded.size) == (original.added, original.size)
+    for name in sac.ReplayBuffer.FIELDS:
+        np.testing.assert_array_equal(getattr(loaded, name), getattr(original, name), name)
+
+
+@given(
+    capacity=st.integers(1, 12),
+    increments=st.lists(st.integers(0, 15), min_size=1, max_size=8),
+)
+def test_replay_segments_restore_the_buffer_at_every_checkpoint(
+    tmp_path_factory, capacity, increments
+):
+    """Checkpoints every few transitions, through several wraps of the FIFO: each one's
+    segments rebuild the buffer exactly, and the files hold little more than the buffer."""
+    folder = tmp_path_factory.mktemp("replay")
+    replay = sac.ReplayBuffer(capacity, 2, 1)
+    for increment in increments:
+        numbered_transitions(replay, increment)
+        replay.save_new_rows(folder)
+        replay.prune(folder)  # after the checkpoint that counts `added` transitions
+        loaded = sac.ReplayBuffer(capacity, 2, 1)
+        loaded.load_rows(folder, replay.added)
+        assert_same_buffer(loaded, replay)
+        on_disk = sum(end - first for first, end, _ in replay.segments(folder))
+        assert on_disk <= replay.size + max(increments)
+
+
+def test_replay_segments_of_a_killed_run_are_replaced(tmp_path):
+    """A segment written just before a kill (its checkpoint never written) is dropped on
+    resume; the resumed run's own transitions take its place."""
+    replay = sac.ReplayBuffer(8, 2, 1)
+    numbered_transitions(replay, 5)
+    replay.save_new_rows(tmp_path)  # checkpoint at 5
+    numbered_transitions(replay, 4)
+    replay.save_new_rows(tmp_path)  # killed before the checkpoint at 9
+
+    resumed = sac.ReplayBuffer(8, 2, 1)
+    resumed.load_rows(tmp_path, 5)
+    assert [(first, end) for first, end, _ in resumed.segments(tmp_path)] == [(0, 5)]
+    numbered_transitions(resumed, 6, offset=100.0)  # not what the killed run saw
+    resumed.save_new_rows(tmp_path)
+    again = sac.ReplayBuffer(8, 2, 1)
+    again.load_rows(tmp_path, 11)
+    assert_same_buffer(again, resumed)
+
+
+def test_replay_segments_missing_rows_and_old_checkpoints(tmp_path):
+    replay = sac.ReplayBuffer(10, 2, 1)
+    for _ in range(3):
+        numbered_transitions(replay, 4)
+        replay.save_new_rows(tmp_path)
+    _, _, middle = replay.segments(tmp_path)[1]
+    middle.unlink()
+    with pytest.raises(expert.UserError, match=r"transitions 4\.\.11 are missing"):
+        sac.ReplayBuffer(10, 2, 1).load_rows(tmp_path, 12)
+    # A checkpoint from before segments held the filled rows and (size, next index).
+    whole = {f"replay/{name}": getattr(replay, name)[:10] for name in replay.FIELDS}
+    loaded = sac.ReplayBuffer(10, 2, 1)
+    loaded.load_whole({**whole, "replay/size_next": np.array([10, 2])})
+    assert_same_buffer(loaded, replay)
+
+
 PENDULUM = "InvertedPendulum-v4"
 TINY = sac.SACConfig(
     steps=600,
