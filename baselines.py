@@ -147,6 +147,11 @@ class GAILConfig(RunSettings):
     """Adam learning rate of the value network."""
     clip_range: float = 0.2
     """PPO's epsilon: the ratio pi/pi_old is clipped to [1 - eps, 1 + eps]."""
+    # Without it, Hopper's policy moved by KL 0.1-4 per iteration once its sigma had
+    # shrunk, and BC+GAIL's first iteration (KL 18) undid the BC policy (README).
+    target_kl: float = 0.01
+    """Stop an iteration's PPO epochs at a minibatch whose KL(pi_old || pi) exceeds
+    1.5 x this (Spinning Up's rule; TRPO's step in the GAIL code is KL 0.01); 0: never."""
     entropy_coef: float = 0.0
     """Weight of the policy's entropy bonus."""
     max_grad_norm: float = 0.5
@@ -198,6 +203,8 @@ def check_config(config: RunSettings) -> None:
             raise UserError("--gae-lambda must lie in [0, 1]")
         if config.clip_range <= 0.0:
             raise UserError("--clip-range must be positive")
+        if config.target_kl < 0.0:
+            raise UserError("--target-kl must be at least 0 (0: no early stop)")
 
 
 # ----------------------------------------------------------------------------------------
@@ -847,9 +854,12 @@ def gail_iteration(
     returns = advantages + values
     old_log_prob, _ = agent.policy.log_prob(states, actions)  # (T,), pi_old: fixed below
 
-    # 4. PPO (Ho & Ermon's line 5, TRPO there): epochs of shuffled minibatches.
-    ppo_stats, updates = [], 0
+    # 4. PPO (Ho & Ermon's line 5, TRPO there): epochs of shuffled minibatches, stopped
+    # early once the policy has moved too far from pi_old (target_kl).
+    ppo_stats, updates, moved_too_far = [], 0, False
     for _ in range(config.ppo_epochs):
+        if moved_too_far:
+            break
         order = rng.permutation(n)
         for start in range(0, n, config.minibatch_size):
             batch = order[start : start + config.minibatch_size]
@@ -864,6 +874,9 @@ def gail_iteration(
                 config.clip_range,
                 config.entropy_coef,
             )
+            if config.target_kl > 0.0 and stats["approx_kl"] > 1.5 * config.target_kl:
+                moved_too_far = True
+                break
             grad_norm = clip_global_norm(grads, config.max_grad_norm)
             agent.policy_optimizer.step(agent.policy.params, grads, config.policy_lr)
             value_loss, value_grads = value_loss_and_grads(
@@ -1013,6 +1026,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# A setting's value for runs whose config.json predates it (what they ran with).
+SETTINGS_BEFORE_THEY_EXISTED = {GAILConfig: {"target_kl": 0.0}}
+
+
 def config_from(args: argparse.Namespace) -> RunSettings:
     """The method's settings: from the flags, or from RUN_DIR/config.json with --resume."""
     cls = METHODS[args.method][0]
@@ -1033,6 +1050,8 @@ def config_from(args: argparse.Namespace) -> RunSettings:
                 f"`python baselines.py {method} --resume {run_dir}`"
             )
         saved = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()}
+        # Settings added since a run started keep the behaviour it started with.
+        saved = {**SETTINGS_BEFORE_THEY_EXISTED.get(cls, {}), **saved}
         return cls(**{**saved, "run_dir": str(run_dir)})
     config = cls(
         **{

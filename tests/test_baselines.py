@@ -4,6 +4,7 @@ definition; the command line end to end on Hopper-v4 with tiny networks; resume.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -509,6 +510,33 @@ def test_gail_resume_reproduces_an_uninterrupted_run(tmp_path, hopper_demos, mon
     # Resuming a finished run changes nothing.
     baselines.train_gail(tiny_gail_config(interrupted, hopper_demos), resume=True)
     assert read_csv(interrupted / "progress.csv") == whole
+
+
+def test_ppo_epochs_stop_once_the_policy_moved_past_target_kl(tmp_path, hopper_demos, monkeypatch):
+    """target_kl 0 runs every epoch; a tiny one stops each iteration after its first
+    step (the policy then differs from pi_old); resuming a run whose config.json predates
+    target_kl keeps running without it."""
+    original, updates = baselines.gail_iteration, {}
+    for target_kl in (0.0, 1e-12):
+        counts = updates[target_kl] = []
+
+        def counting(*args, counts=counts, **kwargs):
+            stats = original(*args, **kwargs)
+            counts.append(stats["ppo_updates"])
+            return stats
+
+        monkeypatch.setattr(baselines, "gail_iteration", counting)
+        config = tiny_gail_config(tmp_path / str(target_kl), hopper_demos)
+        baselines.train_gail(dataclasses.replace(config, target_kl=target_kl))
+    assert min(updates[0.0]) >= 2 * 4  # 2 epochs of >= 50 steps in minibatches of 16
+    assert set(updates[1e-12]) == {1}
+
+    old_run = tmp_path / "0.0"
+    saved = json.loads((old_run / "config.json").read_text())
+    del saved["target_kl"]
+    (old_run / "config.json").write_text(json.dumps(saved))
+    args = baselines.build_parser().parse_args(["gail", "--resume", str(old_run)])
+    assert baselines.config_from(args).target_kl == 0.0
 
 
 @pytest.mark.parametrize(
