@@ -557,6 +557,21 @@ def method_of(config: dict) -> str:
     return "Ours+" + ",".join(f"{k}={config[k]}" for k in ABLATION_SWITCHES if config[k] != ours[k])
 
 
+def run_settings(run_dir) -> dict:
+    """A run's config.json with its METHODS name as "method", and the settings added
+    since the run started filled in with the values it ran with."""
+    import baselines
+    import offpac_il
+
+    config = read_config(run_dir)
+    if "method" in config:  # baselines.py
+        settings_class = baselines.METHODS[config["method"]][0]
+        settings = {**baselines.SETTINGS_BEFORE_THEY_EXISTED.get(settings_class, {}), **config}
+    else:
+        settings = asdict(offpac_il.saved_config(config))
+    return {**settings, "method": method_of(config)}
+
+
 def load_run(run_dir) -> Run:
     """Labels from sweep.json, else from config.json (a run made by hand)."""
     run_dir = Path(run_dir)
@@ -882,13 +897,9 @@ def figure4(
 
 
 def group_runs(run_dirs, label_by: list[str]) -> dict[str, list[Path]]:
-    """Runs grouped by the values of the config keys in `label_by` (seeds pooled)."""
-    import offpac_il
-
-    configs = {
-        run_dir: asdict(offpac_il.saved_config(read_config(run_dir)))
-        for run_dir in map(Path, run_dirs)
-    }
+    """Runs grouped by the values of the config keys in `label_by` (seeds pooled);
+    "method" is the METHODS name of each run."""
+    configs = {run_dir: run_settings(run_dir) for run_dir in map(Path, run_dirs)}
     # Only the keys whose values differ between the runs tell the groups apart.
     varying = [k for k in label_by if len({str(c.get(k)) for c in configs.values()}) > 1]
     groups: dict[str, list[Path]] = defaultdict(list)

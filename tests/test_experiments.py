@@ -408,3 +408,24 @@ def test_a_run_made_by_hand_is_named_by_its_config():
         assert experiments.method_of(config) == name
     mixed = experiments.method_of({"on_policy": True, "policy_type": "gaussian"})
     assert mixed == "Ours+on_policy=True,policy_type=gaussian"
+
+
+def test_curves_group_runs_by_method_and_settings_they_ran_with(tmp_path):
+    """group_runs names each run's method, and fills a setting that a run's config.json
+    predates with the value it ran with (GAIL's target_kl: 0 before it existed)."""
+    configs = {
+        "gail-old": {"method": "gail", "env": "Hopper-v4", "bc_init": ""},
+        "gail-new": {"method": "gail", "env": "Hopper-v4", "bc_init": "", "target_kl": 0.01},
+        "ours": {"env": "Hopper-v4"},
+        "onp": {"env": "Hopper-v4", "on_policy": True},
+    }
+    for name, config in configs.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "config.json").write_text(json.dumps(config))
+    groups = experiments.group_runs([tmp_path / name for name in configs], ["method", "target_kl"])
+    assert {label: [p.name for p in paths] for label, paths in groups.items()} == {
+        "method=GAIL, target_kl=0.0": ["gail-old"],
+        "method=GAIL, target_kl=0.01": ["gail-new"],
+        "method=Ours, target_kl=None": ["ours"],
+        "method=Ours+OnP, target_kl=None": ["onp"],
+    }
