@@ -984,9 +984,11 @@ def train_gail(config: GAILConfig, resume: bool = False) -> offpac_il.Progress:
                 flush=True,
             )
             last_log = now
-        if now - last_checkpoint >= config.checkpoint_every:
+        if now - last_checkpoint >= config.checkpoint_every or nets.stop_requested():
             run.checkpoint(agent)
             last_checkpoint = now
+            if nets.stop_requested():
+                raise KeyboardInterrupt
 
     nets.save_arrays(run.run_dir / "policy_final.npz", policy.state("policy"))
     return progress
@@ -1072,7 +1074,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = config_from(args)
         train = train_bc if isinstance(config, BCConfig) else train_gail
-        with threadpool_limits(limits=1, user_api="blas"):  # small matrices: one thread
+        # Small matrices: one BLAS thread.
+        with threadpool_limits(limits=1, user_api="blas"), nets.stop_at_next_checkpoint():
             train(config, resume=bool(args.resume))
     except UserError as error:
         print(f"error: {error}", file=sys.stderr)

@@ -1250,16 +1250,17 @@ def cli_train_sac(args, argv) -> None:
             values["hidden"] = tuple(values["hidden"])
         config = sac.SACConfig(**values)
         seed, out = args.seed, Path(args.out) if args.out else default_expert_path(args.env)
-    sac.train(
-        args.env,
-        seed,
-        config,
-        run_dir,
-        out,
-        resume=args.resume,
-        command=command_line(argv),
-        log=lambda line: print(line, flush=True),
-    )
+    with nets.stop_at_next_checkpoint():
+        sac.train(
+            args.env,
+            seed,
+            config,
+            run_dir,
+            out,
+            resume=args.resume,
+            command=command_line(argv),
+            log=lambda line: print(line, flush=True),
+        )
 
 
 def cli_demos(args, argv) -> None:
@@ -1402,6 +1403,10 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        resumable = args.command == "train"
+        print("interrupted" + "; continue with --resume" * resumable, file=sys.stderr)
+        return 130
     return 0
 
 

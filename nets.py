@@ -23,10 +23,14 @@ cores.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
+import signal
+import sys
 import tempfile
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -624,6 +628,46 @@ def load_checkpoint(run_dir, rng) -> tuple[dict[str, np.ndarray], dict, list[dic
     arrays = load_arrays(Path(run_dir) / "checkpoint.npz")
     rng.bit_generator.state = json.loads(str(arrays["rng"]))
     return arrays, json.loads(str(arrays["counters"])), json.loads(str(arrays["rows"]))
+
+
+# ----------------------------------------------------------------------------------------
+# Stopping a run at its next checkpoint.
+# ----------------------------------------------------------------------------------------
+
+_stop = threading.Event()
+
+
+@contextlib.contextmanager
+def stop_at_next_checkpoint():
+    """While active, SIGINT (Ctrl-C) and SIGTERM (`kill`) ask the training loop to stop at
+    its next checkpoint point: the loop sees `stop_requested()`, writes its checkpoint and
+    raises KeyboardInterrupt, so nothing since the last periodic checkpoint is lost. A
+    second signal stops at once. A signal the process was started to ignore stays ignored
+    (a shell's `cmd &` ignores SIGINT); outside the main thread nothing is installed."""
+    _stop.clear()
+    installed = {}
+
+    def request(signum, frame):
+        if _stop.is_set():
+            raise KeyboardInterrupt
+        _stop.set()
+        print("stopping at the next checkpoint (signal again to stop at once)", file=sys.stderr)
+
+    if threading.current_thread() is threading.main_thread():
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(signum) is not signal.SIG_IGN:
+                installed[signum] = signal.signal(signum, request)
+    try:
+        yield
+    finally:
+        for signum, handler in installed.items():
+            signal.signal(signum, handler)
+        _stop.clear()
+
+
+def stop_requested() -> bool:
+    """True once a signal has asked the run to stop (see stop_at_next_checkpoint)."""
+    return _stop.is_set()
 
 
 # ----------------------------------------------------------------------------------------

@@ -1120,9 +1120,11 @@ def train(config: Config, resume: bool = False) -> Progress:
                 flush=True,
             )
             last_log = now
-        if now - last_checkpoint >= config.checkpoint_every:
+        if now - last_checkpoint >= config.checkpoint_every or nets.stop_requested():
             save_checkpoint(run_dir, learner, replay, progress, rng)
             last_checkpoint = now
+            if nets.stop_requested():
+                raise KeyboardInterrupt
 
     nets.save_arrays(run_dir / "policy_final.npz", learner.policy_state())
     return progress
@@ -1187,7 +1189,8 @@ def main(argv: list[str] | None = None) -> int:
                     for v in [getattr(args, f.name)]
                 }
             )
-        with threadpool_limits(limits=1, user_api="blas"):  # threads come from map_chunks
+        # BLAS threads off: the threads come from map_chunks.
+        with threadpool_limits(limits=1, user_api="blas"), nets.stop_at_next_checkpoint():
             train(config, resume=bool(args.resume))
     except UserError as error:
         print(f"error: {error}", file=sys.stderr)
