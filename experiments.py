@@ -34,7 +34,7 @@ Command line:
     python experiments.py sweep quick|full [--runs DIR] [--workers N] [--scheduler ADDRESS]
                                            [--methods BC GAIL ...] [--envs Hopper-v4 ...]
     python experiments.py figures quick|full [--runs DIR [DIR ...]] [--out DIR]
-    python experiments.py curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination]
+    python experiments.py curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination] [--x-max N]
 """
 
 from __future__ import annotations
@@ -915,14 +915,18 @@ def plot_curves(
     x: str = "interactions",
     y: str = "normalized_score",
     title: str = "",
+    x_max: float | None = None,
 ) -> None:
-    """One line per group (mean over seeds) with the min-max band over seeds."""
+    """One line per group (mean over seeds) with the min-max band over seeds, up to
+    x_max when given (so that runs of different lengths compare on a common span)."""
     plt = _pyplot()
     # The legend goes below the axes, one line per group, so long labels never cover it.
     fig, ax = plt.subplots(figsize=(8, 4 + 0.22 * len(groups)))
     for label, run_dirs in groups.items():
         runs = [read_progress(d) for d in run_dirs]
-        runs = [r for r in runs if r]
+        if x_max is not None:
+            runs = [{k: v[r[x] <= x_max] for k, v in r.items()} if r else r for r in runs]
+        runs = [r for r in runs if r and len(r[x])]
         if not runs:
             continue
         xs, mean, low, high = mean_and_spread(runs, x, y)
@@ -988,10 +992,12 @@ def main(argv=None) -> int:
     curves.add_argument("--x", default="interactions")
     curves.add_argument("--y", default="normalized_score")
     curves.add_argument("--title", default="")
+    curves.add_argument("--x-max", type=float, help="only the rows up to this x")
     args = parser.parse_args(argv)
 
     if args.command == "curves":
-        plot_curves(group_runs(args.run_dirs, args.label_by), args.out, args.x, args.y, args.title)
+        groups = group_runs(args.run_dirs, args.label_by)
+        plot_curves(groups, args.out, args.x, args.y, args.title, args.x_max)
         return 0
     runs_root = args.runs or DEFAULT_RUNS[args.mode]
     if args.command == "figures":

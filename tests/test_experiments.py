@@ -429,3 +429,20 @@ def test_curves_group_runs_by_method_and_settings_they_ran_with(tmp_path):
         "method=Ours, target_kl=None": ["ours"],
         "method=Ours+OnP, target_kl=None": ["onp"],
     }
+
+
+def test_curves_stop_at_x_max(tmp_path, monkeypatch):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "progress.csv").write_text(
+        "interactions,normalized_score\n0,0.0\n10,0.5\n20,0.9\n30,1.0\n"
+    )
+    plotted, original = [], experiments.mean_and_spread
+    monkeypatch.setattr(
+        experiments,
+        "mean_and_spread",
+        lambda runs, x, y: plotted.append(runs[0][x].tolist()) or original(runs, x, y),
+    )
+    experiments.plot_curves({"a": [run_dir]}, tmp_path / "all.png")
+    experiments.plot_curves({"a": [run_dir]}, tmp_path / "cut.png", x_max=15)
+    assert plotted == [[0, 10, 20, 30], [0, 10]]
