@@ -984,11 +984,10 @@ def train_gail(config: GAILConfig, resume: bool = False) -> offpac_il.Progress:
                 flush=True,
             )
             last_log = now
-        if now - last_checkpoint >= config.checkpoint_every or nets.stop_requested():
+        if nets.checkpoint_due(now - last_checkpoint, config.checkpoint_every):
             run.checkpoint(agent)
             last_checkpoint = now
-            if nets.stop_requested():
-                raise KeyboardInterrupt
+            nets.stop_if_requested()
 
     nets.save_arrays(run.run_dir / "policy_final.npz", policy.state("policy"))
     return progress

@@ -1404,8 +1404,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        resumable = args.command == "train"
-        print("interrupted" + "; continue with --resume" * resumable, file=sys.stderr)
+        resumable = "; continue with --resume" if args.command == "train" else ""
+        print(f"interrupted{resumable}", file=sys.stderr)
         return 130
     return 0
 

@@ -640,10 +640,11 @@ _stop = threading.Event()
 @contextlib.contextmanager
 def stop_at_next_checkpoint():
     """While active, SIGINT (Ctrl-C) and SIGTERM (`kill`) ask the training loop to stop at
-    its next checkpoint point: the loop sees `stop_requested()`, writes its checkpoint and
-    raises KeyboardInterrupt, so nothing since the last periodic checkpoint is lost. A
-    second signal stops at once. A signal the process was started to ignore stays ignored
-    (a shell's `cmd &` ignores SIGINT); outside the main thread nothing is installed."""
+    its next checkpoint point: the loop sees `checkpoint_due`, writes its checkpoint and
+    raises KeyboardInterrupt (`stop_if_requested`), so nothing since the last periodic
+    checkpoint is lost. A second signal stops at once. A signal the process was started
+    to ignore stays ignored (a shell's `cmd &` ignores SIGINT); outside the main thread
+    nothing is installed."""
     _stop.clear()
     installed = {}
 
@@ -665,9 +666,17 @@ def stop_at_next_checkpoint():
         _stop.clear()
 
 
-def stop_requested() -> bool:
-    """True once a signal has asked the run to stop (see stop_at_next_checkpoint)."""
-    return _stop.is_set()
+def checkpoint_due(seconds_since_last: float, every: float) -> bool:
+    """A training loop's periodic checkpoint is due, or a signal asked it to stop (then
+    the loop checkpoints and calls stop_if_requested)."""
+    return seconds_since_last >= every or _stop.is_set()
+
+
+def stop_if_requested() -> None:
+    """After a checkpoint: end the run if a signal asked for it (see
+    stop_at_next_checkpoint); main() reports KeyboardInterrupt as "continue with --resume"."""
+    if _stop.is_set():
+        raise KeyboardInterrupt
 
 
 # ----------------------------------------------------------------------------------------

@@ -1121,11 +1121,10 @@ def train(config: Config, resume: bool = False) -> Progress:
                 flush=True,
             )
             last_log = now
-        if now - last_checkpoint >= config.checkpoint_every or nets.stop_requested():
+        if nets.checkpoint_due(now - last_checkpoint, config.checkpoint_every):
             save_checkpoint(run_dir, learner, replay, progress, rng)
             last_checkpoint = now
-            if nets.stop_requested():
-                raise KeyboardInterrupt
+            nets.stop_if_requested()
 
     nets.save_arrays(run_dir / "policy_final.npz", learner.policy_state())
     return progress

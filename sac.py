@@ -811,11 +811,10 @@ def train(
                 progress.recent_returns.append(episode_return)
                 progress.episodes += 1
                 observation = None
-                if now - last_checkpoint >= config.checkpoint_every or nets.stop_requested():
+                if nets.checkpoint_due(now - last_checkpoint, config.checkpoint_every):
                     save_checkpoint(run_dir, agent, replay, progress, rng)
                     last_checkpoint = time.perf_counter()
-                    if nets.stop_requested():
-                        raise KeyboardInterrupt
+                    nets.stop_if_requested()
         save_checkpoint(run_dir, agent, replay, progress, rng)  # at the budget's end
     log(
         f"done: {progress.env_steps} env steps; best eval return {progress.best_return:.1f} "
