@@ -1031,6 +1031,15 @@ def build_parser() -> argparse.ArgumentParser:
 SETTINGS_BEFORE_THEY_EXISTED = {GAILConfig: {"target_kl": 0.0}}
 
 
+def saved_settings(saved: dict) -> RunSettings:
+    """The settings of a run's config.json (its "method" names the class); a setting the
+    file lacks keeps the behaviour the run started with (SETTINGS_BEFORE_THEY_EXISTED)."""
+    values = {**saved}
+    cls = METHODS[values.pop("method")][0]
+    values = {**SETTINGS_BEFORE_THEY_EXISTED.get(cls, {}), **values}
+    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+
+
 def config_from(args: argparse.Namespace) -> RunSettings:
     """The method's settings: from the flags, or from RUN_DIR/config.json with --resume."""
     cls = METHODS[args.method][0]
@@ -1044,16 +1053,13 @@ def config_from(args: argparse.Namespace) -> RunSettings:
             ) from None
         if not (run_dir / "checkpoint.npz").exists():
             raise UserError(f"{run_dir} holds no checkpoint to resume from")
-        method = saved.pop("method", None)
+        method = saved.get("method")
         if method != args.method:
             raise UserError(
                 f"{run_dir} is a {method} run; resume it with "
                 f"`python baselines.py {method} --resume {run_dir}`"
             )
-        saved = {k: tuple(v) if isinstance(v, list) else v for k, v in saved.items()}
-        # Settings added since a run started keep the behaviour it started with.
-        saved = {**SETTINGS_BEFORE_THEY_EXISTED.get(cls, {}), **saved}
-        return cls(**{**saved, "run_dir": str(run_dir)})
+        return saved_settings({**saved, "run_dir": str(run_dir)})
     config = cls(
         **{
             f.name: (tuple(v) if isinstance(v, list) else v)

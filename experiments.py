@@ -564,12 +564,8 @@ def run_settings(run_dir) -> dict:
     import offpac_il
 
     config = read_config(run_dir)
-    if "method" in config:  # baselines.py
-        settings_class = baselines.METHODS[config["method"]][0]
-        settings = {**baselines.SETTINGS_BEFORE_THEY_EXISTED.get(settings_class, {}), **config}
-    else:
-        settings = asdict(offpac_il.saved_config(config))
-    return {**settings, "method": method_of(config)}
+    script = baselines.saved_settings if "method" in config else offpac_il.saved_config
+    return {**asdict(script(config)), "method": method_of(config)}
 
 
 def load_run(run_dir) -> Run:
