@@ -814,6 +814,15 @@ def train_bc(config: BCConfig, resume: bool = False) -> offpac_il.Progress:
 # ----------------------------------------------------------------------------------------
 
 
+def ppo_minibatches(n: int, epochs: int, size: int, rng: np.random.Generator):
+    """Row indices of each PPO minibatch: `epochs` shuffled passes over n rows, each
+    pass's permutation drawn as it starts."""
+    for _ in range(epochs):
+        order = rng.permutation(n)
+        for start in range(0, n, size):
+            yield order[start : start + size]
+
+
 def gail_iteration(
     agent: GAILAgent, rollout: Rollout, run: Run, config: GAILConfig, rng: np.random.Generator
 ) -> dict[str, float]:
@@ -856,36 +865,27 @@ def gail_iteration(
 
     # 4. PPO (Ho & Ermon's line 5, TRPO there): epochs of shuffled minibatches, stopped
     # early once the policy has moved too far from pi_old (target_kl).
-    ppo_stats, updates, moved_too_far = [], 0, False
-    for _ in range(config.ppo_epochs):
-        if moved_too_far:
+    ppo_stats = []
+    for batch in ppo_minibatches(n, config.ppo_epochs, config.minibatch_size, rng):
+        adv = advantages[batch]
+        adv = (adv - adv.mean()) / (adv.std() + 1e-8)  # per-minibatch, as SB3 does
+        _, grads, stats = ppo_policy_loss_and_grads(
+            agent.policy,
+            states[batch],
+            actions[batch],
+            old_log_prob[batch],
+            adv,
+            config.clip_range,
+            config.entropy_coef,
+        )
+        if config.target_kl > 0.0 and stats["approx_kl"] > 1.5 * config.target_kl:
             break
-        order = rng.permutation(n)
-        for start in range(0, n, config.minibatch_size):
-            batch = order[start : start + config.minibatch_size]
-            adv = advantages[batch]
-            adv = (adv - adv.mean()) / (adv.std() + 1e-8)  # per-minibatch, as SB3 does
-            loss, grads, stats = ppo_policy_loss_and_grads(
-                agent.policy,
-                states[batch],
-                actions[batch],
-                old_log_prob[batch],
-                adv,
-                config.clip_range,
-                config.entropy_coef,
-            )
-            if config.target_kl > 0.0 and stats["approx_kl"] > 1.5 * config.target_kl:
-                moved_too_far = True
-                break
-            grad_norm = clip_global_norm(grads, config.max_grad_norm)
-            agent.policy_optimizer.step(agent.policy.params, grads, config.policy_lr)
-            value_loss, value_grads = value_loss_and_grads(
-                agent.value, states[batch], returns[batch]
-            )
-            clip_global_norm(value_grads, config.max_grad_norm)
-            agent.value_optimizer.step(agent.value.params, value_grads, config.value_lr)
-            ppo_stats.append({**stats, "value_loss": value_loss, "policy_grad_norm": grad_norm})
-            updates += 1
+        grad_norm = clip_global_norm(grads, config.max_grad_norm)
+        agent.policy_optimizer.step(agent.policy.params, grads, config.policy_lr)
+        value_loss, value_grads = value_loss_and_grads(agent.value, states[batch], returns[batch])
+        clip_global_norm(value_grads, config.max_grad_norm)
+        agent.value_optimizer.step(agent.value.params, value_grads, config.value_lr)
+        ppo_stats.append({**stats, "value_loss": value_loss, "policy_grad_norm": grad_norm})
 
     means = {
         name: float(np.mean([stats[name] for stats in records]))
@@ -896,7 +896,7 @@ def gail_iteration(
         **means,
         "reward_mean": float(rewards.mean()),
         "entropy": agent.policy.entropy(),
-        "ppo_updates": updates,
+        "ppo_updates": len(ppo_stats),
     }
 
 
