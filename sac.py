@@ -497,15 +497,6 @@ class ReplayBuffer:
                 f"{folder}: the replay buffer's transitions {filled}..{added - 1} are missing"
             )
 
-    def load_whole(self, arrays) -> None:
-        """The buffer of a checkpoint that held all of it (as before segments existed)."""
-        size, next_index = (int(v) for v in arrays["replay/size_next"])
-        if size > self.capacity:
-            raise UserError(f"checkpoint's replay buffer holds more than {self.capacity} rows")
-        self.added = size if size < self.capacity else self.capacity + next_index
-        for name in self.FIELDS:
-            getattr(self, name)[:size] = arrays[f"replay/{name}"]
-
 
 # ----------------------------------------------------------------------------------------
 # The run: progress, checkpoints, evaluation and the training loop.
@@ -576,10 +567,7 @@ def load_checkpoint(run_dir: Path, agent: Agent, replay: ReplayBuffer, rng) -> P
     try:
         arrays, counters, rows = nets.load_checkpoint(run_dir, rng)
         agent.load_state(arrays)
-        if "replay/added" in arrays:
-            replay.load_rows(Path(run_dir) / REPLAY_SEGMENTS, int(arrays["replay/added"]))
-        else:
-            replay.load_whole(arrays)
+        replay.load_rows(Path(run_dir) / REPLAY_SEGMENTS, int(arrays["replay/added"]))
         return Progress(**counters, rows=rows)
     except (OSError, ValueError, KeyError, EOFError) as error:
         raise UserError(
