@@ -41,6 +41,7 @@ import contextlib
 import dataclasses
 import inspect
 import json
+import math
 import multiprocessing
 import os
 import shlex
@@ -369,11 +370,13 @@ def make_demos(
     seed: int,
     expert: ExpertPolicy | None = None,
     max_attempts: int | None = None,
+    min_return: float = -math.inf,
 ) -> dict:
     """Roll out the expert and keep (s, a, s') triplets as in Sec. 5.1 of the paper.
 
-    Only trajectories that last the full 1000 steps are used: if the expert falls, the episode
-    is dropped and the next reset seed is tried (the dropped seeds are recorded). *sparse* keeps
+    Only trajectories that last the full 1000 steps with a return of at least `min_return`
+    are used (see `demo_return_floor`): otherwise the episode is dropped and the next reset
+    seed is tried (the dropped seeds are recorded). *sparse* keeps
     100 triplets per trajectory, drawn uniformly without replacement; *dense* keeps all 1000.
     Everything comes from one Generator seeded with ``seed``, split into one stream for the
     reset seeds and one for subsampling, so that sparse and dense demonstrations with the same
@@ -393,8 +396,9 @@ def make_demos(
     try:
         while len(returns) < trajectories:
             if len(used_seeds) + len(dropped_seeds) >= max_attempts:
+                floor = f" with a return of at least {min_return:.0f}" * math.isfinite(min_return)
                 raise UserError(
-                    f"the {env_id} expert lasted {TRAJECTORY_STEPS} steps in only "
+                    f"the {env_id} expert lasted {TRAJECTORY_STEPS} steps{floor} in only "
                     f"{len(returns)} of {max_attempts} episodes; it is not good enough for demos"
                 )
             episode_seed = int(episode_rng.integers(0, 2**31 - 1))
@@ -409,7 +413,7 @@ def make_demos(
                 if terminated or truncated:
                     break
             states.append(observation)
-            if len(episode_actions) < TRAJECTORY_STEPS or terminated:
+            if len(episode_actions) < TRAJECTORY_STEPS or terminated or episode_return < min_return:
                 dropped_seeds.append(episode_seed)
                 continue
             states = np.asarray(states)  # (1001, dim S): s_0 .. s_1000
@@ -452,13 +456,39 @@ def write_demos(path: Path, demos: dict) -> None:
     nets.save_arrays(path, demos)
 
 
+def demo_return_floor(env_id: str) -> float:
+    """The least return of a demonstration trajectory from the shipped expert: half-way
+    from the random policy's return to the expert's (Table 1); -inf without a table row.
+
+    Ending early is not the only way for an expert to fail. HalfCheetah never terminates,
+    and its shipped expert flips onto its back in about 1 episode in 12 (return about -400,
+    below the random policy's): such a trajectory demonstrates lying on one's back.
+    """
+    try:
+        random_return, expert_return = reference_returns(env_id)
+    except UserError:
+        return -math.inf
+    return (random_return + expert_return) / 2
+
+
 def ensure_demos(
     env_id: str, trajectories: int = 4, sampling: str = "sparse", seed: int = 0
 ) -> Path:
-    """The default demonstration file, made from the shipped expert the first time."""
+    """The default demonstration file, made from the shipped expert the first time.
+
+    A cached file with a trajectory below `demo_return_floor` (made before that rule) is
+    made again."""
     path = default_demos_path(env_id, trajectories, sampling, seed)
-    if not path.exists():
-        write_demos(path, make_demos(env_id, trajectories, sampling, seed))
+    floor = demo_return_floor(env_id)
+    if path.exists():
+        try:
+            with np.load(path) as cached:
+                if np.all(cached["returns"] >= floor):
+                    return path
+        except Exception:  # a damaged file: load_demos names its problem
+            return path
+        print(f"note: {path} holds a failed expert trajectory; making it again", flush=True)
+    write_demos(path, make_demos(env_id, trajectories, sampling, seed, min_return=floor))
     return path
 
 
@@ -1270,12 +1300,17 @@ def cli_demos(args, argv) -> None:
         if args.out
         else default_demos_path(args.env, args.trajectories, args.sampling, args.seed)
     )
-    demos = make_demos(args.env, args.trajectories, args.sampling, args.seed, expert=expert)
+    # A user's own expert is not held to the shipped expert's floor.
+    floor = demo_return_floor(args.env) if expert is None else -math.inf
+    demos = make_demos(
+        args.env, args.trajectories, args.sampling, args.seed, expert=expert, min_return=floor
+    )
     write_demos(out, demos)
     print(
         f"{out}: {len(demos['observations'])} triplets from {args.trajectories} "
         f"{args.sampling} trajectories, expert returns {np.round(demos['returns'], 1).tolist()}"
-        f", dropped episodes (expert fell): {len(demos['dropped_episode_seeds'])}"
+        f", dropped episodes (expert fell or scored below {floor:.0f}): "
+        f"{len(demos['dropped_episode_seeds'])}"
     )
 
 

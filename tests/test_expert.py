@@ -108,6 +108,50 @@ def test_expert_that_falls_is_refused(pendulum_expert):
         expert.make_demos(PENDULUM, 1, "sparse", 0, expert=pendulum_expert, max_attempts=3)
 
 
+class FlipFirstCheetah:
+    """A stand-in HalfCheetah expert that fails its first episode without ending it:
+    full torque (control cost 0.6 a step, return about -600), then no torque (about 0)."""
+
+    metadata = {"commands": ["hand-made test controller"]}
+
+    def __init__(self):
+        self.calls = 0
+
+    def act(self, observation):
+        self.calls += 1
+        return np.full(6, 1.0 if self.calls <= expert.TRAJECTORY_STEPS else 0.0)
+
+
+def test_trajectory_below_the_return_floor_is_dropped():
+    demos = expert.make_demos(
+        "HalfCheetah-v4", 2, "sparse", 0, expert=FlipFirstCheetah(), min_return=-300.0
+    )
+    assert len(demos["dropped_episode_seeds"]) == 1
+    assert len(demos["episode_seeds"]) == 2 and np.all(demos["returns"] >= -300.0)
+    kept_all = expert.make_demos("HalfCheetah-v4", 2, "sparse", 0, expert=FlipFirstCheetah())
+    assert len(kept_all["dropped_episode_seeds"]) == 0 and kept_all["returns"][0] < -300.0
+
+
+def test_return_floor_is_half_way_from_random_to_expert():
+    table = json.loads((REPO_DIR / "experts" / "table.json").read_text())["Hopper-v4"]
+    midpoint = (table["random_mean"] + table["expert_mean"]) / 2
+    assert expert.demo_return_floor("Hopper-v4") == pytest.approx(midpoint)
+    assert expert.demo_return_floor(PENDULUM) == -np.inf  # no table row: no floor
+
+
+def test_ensure_demos_remakes_a_cached_file_with_a_failed_trajectory(
+    tmp_path, monkeypatch, pendulum_expert
+):
+    monkeypatch.setattr(expert, "DEMOS_DIR", tmp_path)
+    monkeypatch.setattr(expert, "load_expert", lambda env_id: pendulum_expert)
+    monkeypatch.setattr(expert, "demo_return_floor", lambda env_id: 500.0)
+    path = expert.ensure_demos(PENDULUM, trajectories=1, sampling="sparse", seed=3)
+    rewrite(path, returns=np.array([-400.0])).replace(path)  # as an older version kept it
+    assert expert.ensure_demos(PENDULUM, trajectories=1, sampling="sparse", seed=3) == path
+    with np.load(path) as remade:
+        assert remade["returns"].tolist() == [1000.0]
+
+
 def test_ensure_demos_uses_the_cache(tmp_path, monkeypatch, pendulum_expert):
     monkeypatch.setattr(expert, "DEMOS_DIR", tmp_path)
     monkeypatch.setattr(expert, "load_expert", lambda env_id: pendulum_expert)
