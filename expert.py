@@ -370,13 +370,14 @@ def make_demos(
     seed: int,
     expert: ExpertPolicy | None = None,
     max_attempts: int | None = None,
-    min_return: float = -math.inf,
+    min_return: float | None = None,
 ) -> dict:
     """Roll out the expert and keep (s, a, s') triplets as in Sec. 5.1 of the paper.
 
     Only trajectories that last the full 1000 steps with a return of at least `min_return`
-    are used (see `demo_return_floor`): otherwise the episode is dropped and the next reset
-    seed is tried (the dropped seeds are recorded). *sparse* keeps
+    are used: otherwise the episode is dropped and the next reset seed is tried (the dropped
+    seeds and the floor are recorded). By default the shipped expert (`expert` None) is held
+    to `demo_return_floor` and an expert of the caller's to no floor. *sparse* keeps
     100 triplets per trajectory, drawn uniformly without replacement; *dense* keeps all 1000.
     Everything comes from one Generator seeded with ``seed``, split into one stream for the
     reset seeds and one for subsampling, so that sparse and dense demonstrations with the same
@@ -387,6 +388,8 @@ def make_demos(
     if trajectories < 1:
         raise UserError(f"--trajectories must be at least 1, got {trajectories}")
     make_env(env_id).close()  # a wrong environment is reported as such, not as "no expert"
+    if min_return is None:
+        min_return = demo_return_floor(env_id) if expert is None else -math.inf
     expert = expert if expert is not None else load_expert(env_id)
     max_attempts = max_attempts if max_attempts is not None else 10 * trajectories
     episode_rng, subsample_rng = np.random.default_rng(seed).spawn(2)
@@ -396,7 +399,11 @@ def make_demos(
     try:
         while len(returns) < trajectories:
             if len(used_seeds) + len(dropped_seeds) >= max_attempts:
-                floor = f" with a return of at least {min_return:.0f}" * math.isfinite(min_return)
+                floor = (
+                    f" with a return of at least {min_return:.0f}"
+                    if math.isfinite(min_return)
+                    else ""
+                )
                 raise UserError(
                     f"the {env_id} expert lasted {TRAJECTORY_STEPS} steps{floor} in only "
                     f"{len(returns)} of {max_attempts} episodes; it is not good enough for demos"
@@ -446,6 +453,7 @@ def make_demos(
         trajectories=np.array(trajectories),
         episode_seeds=np.array(used_seeds, dtype=np.int64),
         dropped_episode_seeds=np.array(dropped_seeds, dtype=np.int64),
+        min_return=np.array(min_return),
         expert=np.array(json.dumps(expert.metadata.get("commands", []))),
     )
 
@@ -480,16 +488,15 @@ def ensure_demos(
     A cached file with a trajectory below `demo_return_floor` (made before that rule) is
     made again."""
     path = default_demos_path(env_id, trajectories, sampling, seed)
-    floor = demo_return_floor(env_id)
     if path.exists():
         try:
             with np.load(path) as cached:
-                if np.all(cached["returns"] >= floor):
+                if np.all(cached["returns"] >= demo_return_floor(env_id)):
                     return path
-        except Exception:  # a damaged file: load_demos names its problem
-            return path
+        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):
+            return path  # a damaged file: load_demos names its problem
         print(f"note: {path} holds a failed expert trajectory; making it again", flush=True)
-    write_demos(path, make_demos(env_id, trajectories, sampling, seed, min_return=floor))
+    write_demos(path, make_demos(env_id, trajectories, sampling, seed))
     return path
 
 
@@ -1301,16 +1308,12 @@ def cli_demos(args, argv) -> None:
         if args.out
         else default_demos_path(args.env, args.trajectories, args.sampling, args.seed)
     )
-    # A user's own expert is not held to the shipped expert's floor.
-    floor = demo_return_floor(args.env) if expert is None else -math.inf
-    demos = make_demos(
-        args.env, args.trajectories, args.sampling, args.seed, expert=expert, min_return=floor
-    )
+    demos = make_demos(args.env, args.trajectories, args.sampling, args.seed, expert=expert)
     write_demos(out, demos)
     print(
         f"{out}: {len(demos['observations'])} triplets from {args.trajectories} "
         f"{args.sampling} trajectories, expert returns {np.round(demos['returns'], 1).tolist()}"
-        f", dropped episodes (expert fell or scored below {floor:.0f}): "
+        f", dropped episodes (expert fell or scored below {float(demos['min_return']):.0f}): "
         f"{len(demos['dropped_episode_seeds'])}"
     )
 

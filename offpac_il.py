@@ -101,7 +101,7 @@ class Config:
     # Defaults from the measurements in the README: under objective (18) the absorbing
     # state taught Hopper to fall at once; zero continuation is the only treatment that
     # makes a fall worse than staying up (bootstrapping through falls did as well over
-    # one 55 k run). Without standardisation (as DAC and ValueDICE do by default) Hopper
+    # one 55 k run). Standardisation is DAC's and ValueDICE's default; without it Hopper
     # reached 0.91 at 41 k and fell to 0.03 by 75 k.
     termination: str = "zero"
     """At a terminal s': bootstrap (literal Alg. 1), absorbing (DAC), or zero (q'^gamma=0)."""

@@ -150,6 +150,7 @@ def test_ensure_demos_remakes_a_cached_file_with_a_failed_trajectory(
     assert expert.ensure_demos(PENDULUM, trajectories=1, sampling="sparse", seed=3) == path
     with np.load(path) as remade:
         assert remade["returns"].tolist() == [1000.0]
+        assert float(remade["min_return"]) == 500.0  # the shipped expert's floor, by default
 
 
 def test_ensure_demos_uses_the_cache(tmp_path, monkeypatch, pendulum_expert):
