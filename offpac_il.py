@@ -812,7 +812,7 @@ def update(
     )
     policy_states = replay.sample(rng, config.batch_size).states  # line 13: a fresh batch
     n_expert = round(config.policy_expert_states * config.batch_size)
-    if n_expert:  # a deviation from Alg. 1 (off by default): some states from B_pi_E
+    if n_expert:  # a deviation from Alg. 1 (on by default, README): some states from B_pi_E
         expert_rows = rng.integers(0, len(expert_buffer.states), n_expert)
         policy_states[:n_expert] = expert_buffer.states[expert_rows]
     stats.update(policy_step(learner, policy_states, config, policy_lr, rng))
