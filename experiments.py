@@ -892,6 +892,57 @@ def figure4(
     return _save(fig, out_png)
 
 
+def hold_stats(
+    progress: dict[str, np.ndarray], reach: float = 0.9, floor: float = 0.8, since: float = 40_000
+) -> dict:
+    """Does a run reach the expert and stay there (issue 4's measure)?
+
+    first_reach: interactions of the first evaluation with score >= reach (NaN: never);
+    after: evaluations after that one, below_floor: how many of them scored < floor,
+    lowest: the lowest of them; from `since` on: evaluations, how many >= reach, their
+    mean and lowest; last: the last evaluation's score.
+    """
+    x, score = progress["interactions"], progress["normalized_score"]
+    reached = np.flatnonzero(score >= reach)
+    stats = {"first_reach": float(x[reached[0]]) if reached.size else np.nan}
+    later = score[reached[0] + 1 :] if reached.size else np.array([])
+    stats.update(
+        after=len(later),
+        below_floor=int((later < floor).sum()),
+        lowest=float(later.min()) if later.size else np.nan,
+    )
+    tail = score[x >= since]
+    stats.update(
+        since=since,
+        since_evaluations=len(tail),
+        since_reach=int((tail >= reach).sum()),
+        since_mean=float(tail.mean()) if tail.size else np.nan,
+        since_lowest=float(tail.min()) if tail.size else np.nan,
+        last_interactions=float(x[-1]),
+        last=float(score[-1]),
+    )
+    return stats
+
+
+def hold_table(run_dirs, reach: float = 0.9, floor: float = 0.8, since: float = 40_000) -> str:
+    """`hold_stats` of each run as a Markdown table (the README's Hopper and HalfCheetah
+    tables)."""
+    lines = [
+        f"| Run | first >= {reach} | evaluations after it < {floor} | lowest after it "
+        f"| from {since / 1000:g} k on: >= {reach} / mean / lowest | last |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for run_dir in run_dirs:
+        h = hold_stats(read_progress(run_dir), reach, floor, since)
+        first = "never" if np.isnan(h["first_reach"]) else f"{h['first_reach'] / 1000:.1f} k"
+        lines.append(
+            f"| {run_dir} | {first} | {h['below_floor']} of {h['after']} | {h['lowest']:.2f} "
+            f"| {h['since_reach']} of {h['since_evaluations']} / {h['since_mean']:.2f} / "
+            f"{h['since_lowest']:.2f} | {h['last']:.2f} ({h['last_interactions'] / 1000:g} k) |"
+        )
+    return "\n".join(lines)
+
+
 def group_runs(run_dirs, label_by: list[str]) -> dict[str, list[Path]]:
     """Runs grouped by the values of the config keys in `label_by` (seeds pooled);
     "method" is the METHODS name of each run."""
@@ -989,7 +1040,16 @@ def main(argv=None) -> int:
     curves.add_argument("--y", default="normalized_score")
     curves.add_argument("--title", default="")
     curves.add_argument("--x-max", type=float, help="only the rows up to this x")
+    hold = sub.add_parser("hold", help="reaching and holding the expert's score, a table")
+    hold.add_argument("run_dirs", nargs="+")
+    hold.add_argument("--reach", type=float, default=0.9, help="score that counts as reached")
+    hold.add_argument("--floor", type=float, default=0.8, help="score it must stay above")
+    hold.add_argument("--since", type=float, default=40_000, help="interactions of the tail")
     args = parser.parse_args(argv)
+
+    if args.command == "hold":
+        print(hold_table(args.run_dirs, args.reach, args.floor, args.since))
+        return 0
 
     if args.command == "curves":
         groups = group_runs(args.run_dirs, args.label_by)

@@ -446,3 +446,34 @@ def test_curves_stop_at_x_max(tmp_path, monkeypatch):
     experiments.plot_curves({"a": [run_dir]}, tmp_path / "all.png")
     experiments.plot_curves({"a": [run_dir]}, tmp_path / "cut.png", x_max=15)
     assert plotted == [[0, 10, 20, 30], [0, 10]]
+
+
+def test_hold_stats_counts_the_dips_after_the_first_crossing():
+    progress = {
+        "interactions": np.array([0, 10_000, 20_000, 30_000, 40_000, 50_000, 60_000.0]),
+        "normalized_score": np.array([0.0, 0.95, 0.5, 0.92, 0.85, 0.79, 1.0]),
+    }
+    h = experiments.hold_stats(progress, reach=0.9, floor=0.8, since=40_000)
+    assert h["first_reach"] == 10_000
+    assert (h["after"], h["below_floor"], h["lowest"]) == (5, 2, 0.5)
+    assert (h["since_evaluations"], h["since_reach"]) == (3, 1)
+    assert h["since_mean"] == pytest.approx((0.85 + 0.79 + 1.0) / 3)
+    assert (h["since_lowest"], h["last"], h["last_interactions"]) == (0.79, 1.0, 60_000)
+
+
+def test_hold_stats_of_a_run_that_never_reaches():
+    progress = {"interactions": np.array([0, 5_000.0]), "normalized_score": np.array([0.1, 0.3])}
+    h = experiments.hold_stats(progress, since=0)
+    assert np.isnan(h["first_reach"]) and h["after"] == 0 and h["below_floor"] == 0
+    assert h["since_mean"] == pytest.approx(0.2)
+
+
+def test_hold_command_prints_one_row_per_run(tmp_path, capsys):
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "progress.csv").write_text(
+        "interactions,normalized_score\n0,0.0\n20000,0.95\n40000,0.7\n60000,0.97\n"
+    )
+    assert experiments.main(["hold", str(run_dir), "--since", "40000"]) == 0
+    row = capsys.readouterr().out.strip().splitlines()[-1]
+    assert row == f"| {run_dir} | 20.0 k | 1 of 2 | 0.70 | 1 of 2 / 0.83 / 0.70 | 0.97 (60 k) |"
