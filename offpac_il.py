@@ -884,17 +884,20 @@ def imitation_diagnostics(learner: Learner, expert_buffer: Triplets, rng) -> dic
 
     expert_action_error: mean squared distance between pi(s_E, z) and a_E (in [-1, 1]
     units); q_at_expert_action / q_at_policy_action: mean q(s_E, a_E) and q(s_E, pi(s_E, z));
-    policy_std (Gaussian policy only): mean sigma(s_E).
+    critic_input_grad: 1/2 mean ||dx/d[s, a]||^2 of the critic's logit x at (s_E, pi(s_E, z)),
+    how sharp the critic is where gradient (6) reads it (the quantity that
+    --critic-grad-penalty penalises); policy_std (Gaussian policy only): mean sigma(s_E).
     """
     states = expert_buffer.states
     noise = rng.standard_normal((len(states), learner.noise_dim), np.float32)
     actions = learner.act(states, noise)
     q_expert, _ = learner.critic.forward((states, expert_buffer.actions))
-    q_policy, _ = learner.critic.forward((states, actions))
+    q_policy, policy_cache = learner.critic.forward((states, actions))
     return {
         "expert_action_error": float(((actions - expert_buffer.actions) ** 2).mean()),
         "q_at_expert_action": float(q_expert.mean()),
         "q_at_policy_action": float(q_policy.mean()),
+        "critic_input_grad": learner.critic.input_gradient_penalty(policy_cache)[0],
         **(
             {"policy_std": float(learner.policy_std(states).mean())}
             if learner.policy_type == "gaussian"
@@ -925,6 +928,7 @@ PROGRESS_FIELDS = (
     "expert_action_error",
     "q_at_expert_action",
     "q_at_policy_action",
+    "critic_input_grad",  # added later: blank in the rows of runs started before it
 )
 # Columns that only an ablation writes, after the others (a default run's file keeps
 # the columns above and nothing else).

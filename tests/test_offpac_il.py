@@ -190,6 +190,32 @@ def targets_and_continuation(learner, config, rng):
     return t, continuation, batch, from_replay
 
 
+def test_critic_input_grad_diagnostic_is_half_the_squared_input_gradient():
+    """The progress column critic_input_grad: 1/2 mean_n ||dx_n/d[s_n, a_n]||^2 at the
+    expert's states and the policy's actions there, against finite differences of x."""
+    learner, _, rng = small_learner(3)
+    expert = random_triplets(rng, 4)
+    diagnostics = offpac_il.imitation_diagnostics(learner, expert, np.random.default_rng(0))
+    noise = np.random.default_rng(0).standard_normal((4, learner.noise_dim), np.float32)
+    inputs = np.concatenate([expert.states, learner.act(expert.states, noise)], axis=1)
+    squared = []
+    for row in inputs:
+
+        def logit(row=row):
+            return float(learner.critic.forward(row[None])[1].logits[0, 0])
+
+        squared.append((numerical_gradient(logit, row) ** 2).sum())
+    assert diagnostics["critic_input_grad"] == pytest.approx(0.5 * np.mean(squared), rel=1e-6)
+
+
+def test_rows_written_before_a_column_existed_leave_it_blank():
+    old = {name: 1.0 for name in offpac_il.PROGRESS_FIELDS if name != "critic_input_grad"}
+    new = {name: 2.0 for name in offpac_il.PROGRESS_FIELDS}
+    header, first, second = offpac_il.progress_csv([old, new]).splitlines()
+    assert header.split(",") == list(offpac_il.PROGRESS_FIELDS)
+    assert first.split(",")[-1] == "" and second.split(",")[-1] == "2.0"
+
+
 @pytest.mark.parametrize("termination", offpac_il.TERMINATIONS)
 def test_critic_targets(termination):
     learner, config, rng = small_learner(3, termination=termination, target_samples=4)
