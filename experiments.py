@@ -893,16 +893,23 @@ def figure4(
 
 
 def hold_stats(
-    progress: dict[str, np.ndarray], reach: float = 0.9, floor: float = 0.8, since: float = 40_000
+    progress: dict[str, np.ndarray],
+    reach: float = 0.9,
+    floor: float = 0.8,
+    since: float = 40_000,
+    until: float = np.inf,
 ) -> dict:
     """Does a run reach the expert and stay there (issue 4's measure)?
 
-    first_reach: interactions of the first evaluation with score >= reach (NaN: never);
-    after: evaluations after that one, below_floor: how many of them scored < floor,
-    lowest: the lowest of them; from `since` on: evaluations, how many >= reach, their
-    mean and lowest; last: the last evaluation's score.
+    Only evaluations at or before `until` interactions count (so that runs of different
+    lengths compare over one span). first_reach: interactions of the first evaluation
+    with score >= reach (NaN: never); after: evaluations after that one, below_floor:
+    how many of them scored < floor, lowest: the lowest of them; from `since` on:
+    evaluations, how many >= reach, their mean and lowest; last: the last evaluation's
+    score and interactions.
     """
-    x, score = progress["interactions"], progress["normalized_score"]
+    kept = progress["interactions"] <= until
+    x, score = progress["interactions"][kept], progress["normalized_score"][kept]
     reached = np.flatnonzero(score >= reach)
     stats = {"first_reach": float(x[reached[0]]) if reached.size else np.nan}
     later = score[reached[0] + 1 :] if reached.size else np.array([])
@@ -924,7 +931,13 @@ def hold_stats(
     return stats
 
 
-def hold_table(run_dirs, reach: float = 0.9, floor: float = 0.8, since: float = 40_000) -> str:
+def hold_table(
+    run_dirs,
+    reach: float = 0.9,
+    floor: float = 0.8,
+    since: float = 40_000,
+    until: float = np.inf,
+) -> str:
     """`hold_stats` of each run as a Markdown table (the README's Hopper and HalfCheetah
     tables)."""
     lines = [
@@ -933,7 +946,7 @@ def hold_table(run_dirs, reach: float = 0.9, floor: float = 0.8, since: float = 
         "|---|---:|---:|---:|---:|---:|",
     ]
     for run_dir in run_dirs:
-        h = hold_stats(read_progress(run_dir), reach, floor, since)
+        h = hold_stats(read_progress(run_dir), reach, floor, since, until)
         first = "never" if np.isnan(h["first_reach"]) else f"{h['first_reach'] / 1000:.1f} k"
         lines.append(
             f"| {run_dir} | {first} | {h['below_floor']} of {h['after']} | {h['lowest']:.2f} "
@@ -1045,10 +1058,11 @@ def main(argv=None) -> int:
     hold.add_argument("--reach", type=float, default=0.9, help="score that counts as reached")
     hold.add_argument("--floor", type=float, default=0.8, help="score it must stay above")
     hold.add_argument("--since", type=float, default=40_000, help="interactions of the tail")
+    hold.add_argument("--until", type=float, default=np.inf, help="ignore evaluations after")
     args = parser.parse_args(argv)
 
     if args.command == "hold":
-        print(hold_table(args.run_dirs, args.reach, args.floor, args.since))
+        print(hold_table(args.run_dirs, args.reach, args.floor, args.since, args.until))
         return 0
 
     if args.command == "curves":

@@ -459,6 +459,9 @@ def test_hold_stats_counts_the_dips_after_the_first_crossing():
     assert (h["since_evaluations"], h["since_reach"]) == (3, 1)
     assert h["since_mean"] == pytest.approx((0.85 + 0.79 + 1.0) / 3)
     assert (h["since_lowest"], h["last"], h["last_interactions"]) == (0.79, 1.0, 60_000)
+    h = experiments.hold_stats(progress, since=40_000, until=50_000)
+    assert (h["after"], h["below_floor"], h["since_evaluations"]) == (4, 2, 2)
+    assert (h["last"], h["last_interactions"]) == (0.79, 50_000)
 
 
 def test_hold_stats_of_a_run_that_never_reaches():
