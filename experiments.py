@@ -899,7 +899,7 @@ def hold_stats(
     since: float = 40_000,
     until: float = np.inf,
 ) -> dict:
-    """Does a run reach the expert and stay there (issue 4's measure)?
+    """Does a run reach the expert and stay there (the README's reach-and-hold target)?
 
     Only evaluations at or before `until` interactions count (so that runs of different
     lengths compare over one span). first_reach: interactions of the first evaluation
