@@ -113,6 +113,8 @@ class Config:
     """Weight of 1/2 mean ||dx/d[s,a]||^2 on the critic's logit (DAC's stabiliser; paper: 0)."""
     policy_expert_states: float = 0.5
     """Fraction of the policy step's states drawn from the demonstrations (paper: 0)."""
+    exploration_noise: float = 0.0
+    """Std of Gaussian noise added to the action in training episodes (paper: 0)."""
 
     # The paper's ablations (Sec. 5.3, Figure 4), switches of this one learner; the
     # defaults are Ours. What each switch changes, and why: the comment above `Learner`.
@@ -184,6 +186,8 @@ def check_config(config: Config) -> None:
         raise UserError("--critic-reg and --critic-grad-penalty must be at least 0")
     if not 0.0 <= config.policy_expert_states <= 1.0:
         raise UserError("--policy-expert-states must lie in [0, 1]")
+    if not 0.0 <= config.exploration_noise < math.inf:
+        raise UserError("--exploration-noise must be a finite number, at least 0")
 
 
 # ----------------------------------------------------------------------------------------
@@ -831,11 +835,17 @@ def run_episode(
     rng: np.random.Generator,
     seed: int,
     replay: ReplayBuffer | None = None,
+    exploration_noise: float = 0.0,
 ) -> tuple[float, int]:
     """One episode with a_t = pi_theta(s_t, z), z ~ N(0, I); stores triplets if `replay`.
 
     Returns (true return, length). Only `terminated` ends the value chain; a time-limit
     truncation bootstraps like any other step.
+
+    exploration_noise > 0 (a deviation, --exploration-noise): a_t + N(0, sigma^2 I) is
+    executed and stored instead. The learned policy comes to ignore its noise input z
+    as it matches the noise-free expert, and then the critic sees one action per
+    visited state and cannot tell the policy which other action would do better there.
 
     An unbounded (Gaussian) action is clipped to [-1, 1] only on its way to the
     environment; the replay stores the action as sampled, so the critic sees what the
@@ -848,6 +858,10 @@ def run_episode(
     while not done:
         noise = rng.standard_normal((1, learner.noise_dim), np.float32)
         action = learner.act(state[None], noise)[0]
+        if exploration_noise > 0:
+            action = action + exploration_noise * rng.standard_normal(action.shape, np.float32)
+            if learner.policy_type != "gaussian":  # stay inside tanh's range
+                action = np.clip(action, -1.0, 1.0)
         executed = spaces.to_env_action(np.clip(action, -1.0, 1.0))
         observation, reward, terminated, truncated, _ = env.step(executed)
         next_state = spaces.state(observation)
@@ -886,18 +900,23 @@ def imitation_diagnostics(learner: Learner, expert_buffer: Triplets, rng) -> dic
     units); q_at_expert_action / q_at_policy_action: mean q(s_E, a_E) and q(s_E, pi(s_E, z));
     critic_input_grad: 1/2 mean ||dx/d[s, a]||^2 of the critic's logit x at (s_E, pi(s_E, z)),
     how sharp the critic is where gradient (6) reads it (the quantity that
-    --critic-grad-penalty penalises); policy_std (Gaussian policy only): mean sigma(s_E).
+    --critic-grad-penalty penalises); policy_noise_spread: the std of pi(s_E, z) over 8
+    noise vectors z, averaged over states and action components, how much the policy
+    still explores through z; policy_std (Gaussian policy only): mean sigma(s_E).
     """
     states = expert_buffer.states
     noise = rng.standard_normal((len(states), learner.noise_dim), np.float32)
     actions = learner.act(states, noise)
     q_expert, _ = learner.critic.forward((states, expert_buffer.actions))
     q_policy, policy_cache = learner.critic.forward((states, actions))
+    spread_noise = rng.standard_normal((len(states) * 8, learner.noise_dim), np.float32)
+    spread_actions = learner.act(np.repeat(states, 8, axis=0), spread_noise)
     return {
         "expert_action_error": float(((actions - expert_buffer.actions) ** 2).mean()),
         "q_at_expert_action": float(q_expert.mean()),
         "q_at_policy_action": float(q_policy.mean()),
         "critic_input_grad": learner.critic.input_gradient_penalty(policy_cache)[0],
+        "policy_noise_spread": float(spread_actions.reshape(len(states), 8, -1).std(axis=1).mean()),
         **(
             {"policy_std": float(learner.policy_std(states).mean())}
             if learner.policy_type == "gaussian"
@@ -928,7 +947,9 @@ PROGRESS_FIELDS = (
     "expert_action_error",
     "q_at_expert_action",
     "q_at_policy_action",
-    "critic_input_grad",  # added later: blank in the rows of runs started before it
+    # Added later: blank in the rows of runs started before them.
+    "critic_input_grad",
+    "policy_noise_spread",
 )
 # Columns that only an ablation writes, after the others (a default run's file keeps
 # the columns above and nothing else).
@@ -1088,7 +1109,9 @@ def train(config: Config, resume: bool = False) -> Progress:
 
         # Alg. 1, lines 4-9: one episode with the current policy.
         seed = int(rng.integers(2**31))
-        episode_return, length = run_episode(env, learner, spaces, rng, seed, replay)
+        episode_return, length = run_episode(
+            env, learner, spaces, rng, seed, replay, config.exploration_noise
+        )
         recent_returns.append(episode_return)
         progress.episodes += 1
         # Lines 10-15: as many updates as the episode had steps.

@@ -209,11 +209,62 @@ def test_critic_input_grad_diagnostic_is_half_the_squared_input_gradient():
 
 
 def test_rows_written_before_a_column_existed_leave_it_blank():
-    old = {name: 1.0 for name in offpac_il.PROGRESS_FIELDS if name != "critic_input_grad"}
+    later = ("critic_input_grad", "policy_noise_spread")
+    old = {name: 1.0 for name in offpac_il.PROGRESS_FIELDS if name not in later}
     new = {name: 2.0 for name in offpac_il.PROGRESS_FIELDS}
     header, first, second = offpac_il.progress_csv([old, new]).splitlines()
     assert header.split(",") == list(offpac_il.PROGRESS_FIELDS)
-    assert first.split(",")[-1] == "" and second.split(",")[-1] == "2.0"
+    assert first.split(",")[-2:] == ["", ""] and second.split(",")[-2:] == ["2.0", "2.0"]
+
+
+def test_policy_noise_spread_is_how_much_the_action_moves_with_z():
+    """0 for the deterministic policy (z fixed); for Ours it grows with PN's weights on
+    z, the columns of the first layer that multiply the noise input."""
+    rng = np.random.default_rng(0)
+    expert = random_triplets(rng, 5)
+
+    def spread(learner):
+        return offpac_il.imitation_diagnostics(learner, expert, np.random.default_rng(1))[
+            "policy_noise_spread"
+        ]
+
+    assert spread(small_learner(3, policy_type="deterministic")[0]) == pytest.approx(0, abs=1e-12)
+    learner = small_learner(3)[0]
+    before = spread(learner)
+    learner.policy.params["W0"][3:] *= 3.0  # the rows of W0 that read z (state_dim = 3)
+    assert 0.0 < before < spread(learner)
+
+
+def test_exploration_noise_is_executed_and_stored():
+    """With --exploration-noise sigma, step t executes and stores
+    clip(pi(s_t, z_t) + sigma * eps_t, -1, 1), z_t and eps_t drawn in turn from the
+    run's Generator; with sigma = 0 no eps is drawn and pi(s_t, z_t) is used."""
+    import expert
+
+    env = expert.make_env("Hopper-v4")
+    config = offpac_il.Config(policy_hidden=(4, 4), critic_hidden=(4, 4))
+    zeros = np.zeros((2, 11), np.float32)
+    demos = expert.Demos(zeros, np.zeros((2, 3), np.float32), zeros, np.zeros(2, bool))
+    spaces = offpac_il.make_spaces(env, demos, config)
+    learner = offpac_il.Learner.create(11, 11, 3, config, np.random.default_rng(0))
+    executed = []
+    step = env.step
+    env.step = lambda a: executed.append(a) or step(a)
+    for sigma in (0.0, 0.5):
+        replay, executed[:] = offpac_il.ReplayBuffer(2000, 11, 3), []
+        _, length = offpac_il.run_episode(
+            env, learner, spaces, np.random.default_rng(1), 0, replay, sigma
+        )
+        draws, expected = np.random.default_rng(1), []
+        for state in replay.data.states[:length]:
+            action = learner.act(state[None], draws.standard_normal((1, 11), np.float32))[0]
+            if sigma:
+                action = np.clip(action + sigma * draws.standard_normal(3, np.float32), -1, 1)
+            expected.append(action)
+        stored = replay.data.actions[:length]
+        np.testing.assert_array_equal(stored, np.array(expected))
+        np.testing.assert_allclose(np.array(executed), spaces.to_env_action(stored), rtol=1e-6)
+    assert np.abs(stored).max() == 1.0  # sigma = 0.5 pushes some components to the bound
 
 
 @pytest.mark.parametrize("termination", offpac_il.TERMINATIONS)
