@@ -1022,6 +1022,64 @@ def draw_figures(runs_roots, out_dir) -> dict[str, Path | None]:
     }
 
 
+def probe_critic(run_dir, episodes: int = 3, steps: int = 300, seed: int = 2_000_000) -> list[dict]:
+    """How the critic of a run's checkpoint sees the learner's own states.
+
+    Rolls the stochastic policy out for `steps` steps from reset seeds seed, seed + 1, ...
+    and, at every state s it visits, compares the shipped expert's action a_E(s) (in
+    [-1, 1] units) with the policy's pi(s, 0): q(s, a_E) against q(s, pi), and the
+    cosine between the direction gradient (6) moves the action, d log q / da at pi, and
+    a_E - pi; squared_distance is ||a_E - pi||^2. One row per episode: where the critic
+    would lead the policy back to the expert, the fraction is high and the cosine positive.
+    """
+    import expert
+    import offpac_il
+
+    config, spaces, _, learner, _, _ = offpac_il.restore(run_dir)
+    env, policy_of_expert = expert.make_env(config.env), expert.load_expert(config.env)
+    rng = np.random.default_rng(seed)
+    rows = []
+    for episode in range(episodes):
+        observation, _ = env.reset(seed=seed + episode)
+        states, expert_actions, total = [], [], 0.0
+        for _ in range(steps):
+            state = spaces.state(observation)
+            states.append(state)
+            expert_actions.append(spaces.from_env_action(policy_of_expert.act(observation)))
+            noise = rng.standard_normal((1, learner.noise_dim), np.float32)
+            action = learner.act(state[None], noise)[0]
+            observation, reward, terminated, truncated, _ = env.step(spaces.to_env_action(action))
+            total += reward
+            if terminated or truncated:
+                break
+        s = np.array(states, np.float32)
+        a_expert = np.clip(np.array(expert_actions, np.float32), -1.0, 1.0)
+        a_policy = learner.act(s, np.zeros((len(s), learner.noise_dim), np.float32))
+        q_expert = learner.critic.forward((s, a_expert))[0][:, 0]
+        q_policy, cache = learner.critic.forward((s, a_policy))
+        # d log q / dx = 1 - q for q = sigmoid(x); the action block of the input gradient.
+        d_action = learner.critic.backward(
+            1.0 - q_policy, cache, through_head=False, param_grads=False
+        )[0][1]
+        towards = a_expert - a_policy
+        cosine = (d_action * towards).sum(axis=1) / (
+            np.linalg.norm(d_action, axis=1) * np.linalg.norm(towards, axis=1) + 1e-12
+        )
+        rows.append(
+            {
+                "episode": episode,
+                "steps": len(s),
+                "return": round(total, 1),
+                "q_at_expert_action": float(q_expert.mean()),
+                "q_at_policy_action": float(q_policy.mean()),
+                "expert_action_preferred": float((q_expert > q_policy[:, 0]).mean()),
+                "squared_distance": float((towards**2).sum(axis=1).mean()),
+                "gradient_cosine": float(cosine.mean()),
+            }
+        )
+    return rows
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -1059,8 +1117,19 @@ def main(argv=None) -> int:
     hold.add_argument("--floor", type=float, default=0.8, help="score it must stay above")
     hold.add_argument("--since", type=float, default=40_000, help="interactions of the tail")
     hold.add_argument("--until", type=float, default=np.inf, help="ignore evaluations after")
+    probe = sub.add_parser("probe", help="the critic at the learner's own states, a table")
+    probe.add_argument("run_dir")
+    probe.add_argument("--episodes", type=int, default=3)
+    probe.add_argument("--steps", type=int, default=300, help="steps per episode")
+    probe.add_argument("--seed", type=int, default=2_000_000, help="reset seed of the first")
     args = parser.parse_args(argv)
 
+    if args.command == "probe":
+        rows = probe_critic(args.run_dir, args.episodes, args.steps, args.seed)
+        print(" | ".join(rows[0]))
+        for row in rows:
+            print(" | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row.values()))
+        return 0
     if args.command == "hold":
         print(hold_table(args.run_dirs, args.reach, args.floor, args.since, args.until))
         return 0

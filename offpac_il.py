@@ -1013,6 +1013,33 @@ def load_checkpoint(
     return Progress(**counters, rows=rows)
 
 
+def prepare(config: Config, env, rng: np.random.Generator):
+    """The demonstrations (B_piE), the spaces, a fresh learner and an empty B_beta."""
+    demo_path = (
+        Path(config.demos)
+        if config.demos
+        else expert.ensure_demos(config.env, config.trajectories, config.sampling, config.demo_seed)
+    )
+    demos = expert.load_demos(demo_path, config.env)
+    spaces = make_spaces(env, demos, config)
+    expert_buffer = expert_buffer_from(demos, spaces)
+    state_dim, action_dim = expert_buffer.states.shape[1], expert_buffer.actions.shape[1]
+    env.action_space.seed(config.seed)
+    learner = Learner.create(state_dim, env.observation_space.shape[0], action_dim, config, rng)
+    replay = ReplayBuffer(config.replay_size, state_dim, action_dim)
+    return spaces, expert_buffer, learner, replay
+
+
+def restore(run_dir) -> tuple[Config, Spaces, Triplets, Learner, ReplayBuffer, Progress]:
+    """A run as its last checkpoint left it (for looking into it, not for training)."""
+    run_dir = Path(run_dir)
+    config = saved_config(json.loads((run_dir / "config.json").read_text()))
+    rng = np.random.default_rng(config.seed)
+    spaces, expert_buffer, learner, replay = prepare(config, expert.make_env(config.env), rng)
+    progress = load_checkpoint(run_dir, learner, replay, rng)
+    return config, spaces, expert_buffer, learner, replay, progress
+
+
 def train(config: Config, resume: bool = False) -> Progress:
     """Algorithm 1, with evaluation, logging and checkpoints around it."""
     check_config(config)
@@ -1028,20 +1055,8 @@ def train(config: Config, resume: bool = False) -> Progress:
     except UserError as missing:  # any Box task can be learned; it just has no score
         print(f"note: no normalised score ({missing})", flush=True)
         random_return, expert_return = math.nan, math.nan
-    demo_path = (
-        Path(config.demos)
-        if config.demos
-        else expert.ensure_demos(config.env, config.trajectories, config.sampling, config.demo_seed)
-    )
-    demos = expert.load_demos(demo_path, config.env)
-    spaces = make_spaces(env, demos, config)
-    expert_buffer = expert_buffer_from(demos, spaces)
-    state_dim, action_dim = expert_buffer.states.shape[1], expert_buffer.actions.shape[1]
-
     rng = np.random.default_rng(config.seed)  # the run's one Generator, passed explicitly
-    env.action_space.seed(config.seed)
-    learner = Learner.create(state_dim, env.observation_space.shape[0], action_dim, config, rng)
-    replay = ReplayBuffer(config.replay_size, state_dim, action_dim)
+    spaces, expert_buffer, learner, replay = prepare(config, env, rng)
     run_dir.mkdir(parents=True, exist_ok=True)
     if resume:
         progress = load_checkpoint(run_dir, learner, replay, rng)

@@ -902,3 +902,49 @@ def test_a_config_saved_before_a_setting_existed_keeps_the_papers_behaviour():
     assert config.policy_hidden == (100, 100)
     saved["policy_expert_states"] = 0.5
     assert offpac_il.saved_config(saved).policy_expert_states == 0.5
+
+
+def test_restore_and_the_critic_probe(tmp_path, hopper_demos, monkeypatch):
+    """`restore` gives back the checkpoint's learner; `experiments.probe_critic` compares
+    the critic at the expert's and the policy's actions. Checked with stand-in experts
+    whose action is the policy's own (no difference), and the policy's moved a small
+    step along d log q / da (cosine 1, expert action preferred everywhere)."""
+    import experiments
+    import expert
+
+    config = tiny_config(tmp_path / "run", hopper_demos)
+    offpac_il.train(config)
+    _, spaces, _, learner, replay, progress = offpac_il.restore(tmp_path / "run")
+    assert progress.interactions >= 300 and replay.size == progress.interactions
+    saved = nets.load_arrays(tmp_path / "run" / "policy_final.npz")
+    for name, value in learner.policy_state().items():
+        np.testing.assert_array_equal(value, saved[name])
+
+    def policy_action(observation):
+        state = spaces.state(observation)[None]
+        return learner.act(state, np.zeros((1, learner.noise_dim), np.float32))
+
+    def along_gradient(observation):
+        action = policy_action(observation)
+        state = spaces.state(observation)[None]
+        q, cache = learner.critic.forward((state, action))
+        grad = learner.critic.backward(1.0 - q, cache, through_head=False, param_grads=False)
+        step = grad[0][1] / np.linalg.norm(grad[0][1])
+        return spaces.to_env_action(np.clip(action + 1e-3 * step, -1, 1))[0]
+
+    class StandIn:
+        def __init__(self, act):
+            self.act = act
+
+    monkeypatch.setattr(
+        expert,
+        "load_expert",
+        lambda env_id: StandIn(lambda o: spaces.to_env_action(policy_action(o))[0]),
+    )
+    (same,) = experiments.probe_critic(tmp_path / "run", episodes=1, steps=20)
+    assert same["squared_distance"] < 1e-10  # up to the round trip through env units
+    assert same["q_at_expert_action"] == pytest.approx(same["q_at_policy_action"], rel=1e-5)
+    monkeypatch.setattr(expert, "load_expert", lambda env_id: StandIn(along_gradient))
+    (better,) = experiments.probe_critic(tmp_path / "run", episodes=1, steps=20)
+    assert 0 < better["steps"] <= 20
+    assert better["gradient_cosine"] > 0.99 and better["expert_action_preferred"] == 1.0
