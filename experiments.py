@@ -1022,48 +1022,59 @@ def draw_figures(runs_roots, out_dir) -> dict[str, Path | None]:
     }
 
 
+class _Recording:
+    """An environment that keeps the observations it returns, so that an episode run by
+    `offpac_il.run_episode` can be looked at afterwards."""
+
+    def __init__(self, env):
+        self.env, self.observations = env, []
+
+    def reset(self, **kwargs):
+        observation, info = self.env.reset(**kwargs)
+        self.observations = [observation]
+        return observation, info
+
+    def step(self, action):
+        result = self.env.step(action)
+        self.observations.append(result[0])
+        return result
+
+
 def probe_critic(run_dir, episodes: int = 3, steps: int = 300, seed: int = 2_000_000) -> list[dict]:
     """How the critic of a run's checkpoint sees the learner's own states.
 
-    Rolls the stochastic policy out for `steps` steps from reset seeds seed, seed + 1, ...
-    and, at every state s it visits, compares the shipped expert's action a_E(s) (in
-    [-1, 1] units) with the policy's pi(s, 0): q(s, a_E) against q(s, pi), and the
-    cosine between the direction gradient (6) moves the action, d log q / da at pi, and
-    a_E - pi; squared_distance is ||a_E - pi||^2. One row per episode: where the critic
-    would lead the policy back to the expert, the fraction is high and the cosine positive.
+    Runs episodes of the stochastic policy from reset seeds seed, seed + 1, ... and, at
+    each of the first `steps` states s of each, compares the shipped expert's action
+    a_E(s) (in [-1, 1] units) with the policy's pi(s, 0): q(s, a_E) against q(s, pi), and
+    the cosine between the direction gradient (6) moves the action, d log q / da at pi,
+    and a_E - pi; squared_distance is ||a_E - pi||^2. One row per episode (its return is
+    the whole episode's): where the critic would lead the policy back to the expert, the
+    fraction is high and the cosine positive.
     """
     import expert
     import offpac_il
 
     config, spaces, _, learner, _, _ = offpac_il.restore(run_dir)
-    env, policy_of_expert = expert.make_env(config.env), expert.load_expert(config.env)
+    env, policy_of_expert = _Recording(expert.make_env(config.env)), expert.load_expert(config.env)
     rng = np.random.default_rng(seed)
     rows = []
     for episode in range(episodes):
-        observation, _ = env.reset(seed=seed + episode)
-        states, expert_actions, total = [], [], 0.0
-        for _ in range(steps):
-            state = spaces.state(observation)
-            states.append(state)
-            expert_actions.append(spaces.from_env_action(policy_of_expert.act(observation)))
-            noise = rng.standard_normal((1, learner.noise_dim), np.float32)
-            action = learner.act(state[None], noise)[0]
-            observation, reward, terminated, truncated, _ = env.step(spaces.to_env_action(action))
-            total += reward
-            if terminated or truncated:
-                break
-        s = np.array(states, np.float32)
-        a_expert = np.clip(np.array(expert_actions, np.float32), -1.0, 1.0)
+        total, length = offpac_il.run_episode(env, learner, spaces, rng, seed + episode)
+        observations = env.observations[: min(length, steps)]  # those acted upon
+        s = spaces.state(np.array(observations))  # (T, dim s)
+        a_expert = np.clip(
+            np.array([spaces.from_env_action(policy_of_expert.act(o)) for o in observations]),
+            -1.0,
+            1.0,
+        ).astype(np.float32)  # (T, dim A)
         a_policy = learner.act(s, np.zeros((len(s), learner.noise_dim), np.float32))
         q_expert = learner.critic.forward((s, a_expert))[0][:, 0]
-        q_policy, cache = learner.critic.forward((s, a_policy))
-        # d log q / dx = 1 - q for q = sigmoid(x); the action block of the input gradient.
-        d_action = learner.critic.backward(
-            1.0 - q_policy, cache, through_head=False, param_grads=False
-        )[0][1]
+        d_actions, cache = offpac_il.neg_log_q_action_gradient(learner.critic, s, a_policy, 1)
+        q_policy = cache.output[:, 0]
         towards = a_expert - a_policy
-        cosine = (d_action * towards).sum(axis=1) / (
-            np.linalg.norm(d_action, axis=1) * np.linalg.norm(towards, axis=1) + 1e-12
+        # The step of gradient (6) moves the action along -d_actions = d log q / da.
+        cosine = -(d_actions * towards).sum(axis=1) / (
+            np.linalg.norm(d_actions, axis=1) * np.linalg.norm(towards, axis=1) + 1e-12
         )
         rows.append(
             {
@@ -1072,7 +1083,7 @@ def probe_critic(run_dir, episodes: int = 3, steps: int = 300, seed: int = 2_000
                 "return": round(total, 1),
                 "q_at_expert_action": float(q_expert.mean()),
                 "q_at_policy_action": float(q_policy.mean()),
-                "expert_action_preferred": float((q_expert > q_policy[:, 0]).mean()),
+                "expert_action_preferred": float((q_expert > q_policy).mean()),
                 "squared_distance": float((towards**2).sum(axis=1).mean()),
                 "gradient_cosine": float(cosine.mean()),
             }

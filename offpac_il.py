@@ -732,6 +732,19 @@ def critic_step(
     }
 
 
+def neg_log_q_action_gradient(critic: nets.MLP, states, actions, total_rows: int):
+    """d(-sum_n log q(s_n, a_n) / total_rows)/da_n (N, dim A), the critic's part of
+    gradient (6), and the critic's cache (logits (N, 1)). The critic stays fixed."""
+    _, cache = critic.forward((states, actions))  # logits (N, 1)
+    # d(-log q)/dx = -(1 - q) for q = sigmoid(x), Eq. (10), averaged over the rows.
+    d_x = -nets.log_sigmoid_grad(cache.logits) / total_rows
+    # The critic's action Jacobian, without its weight gradients.
+    (_, d_actions), _ = critic.backward(
+        d_x, cache, through_head=False, param_grads=False, input_grads=(False, True)
+    )
+    return d_actions, cache
+
+
 def policy_gradient(learner: Learner, states: np.ndarray, noise: np.ndarray, total_rows: int):
     """Gradient (6) of -mean log q(s, pi(s, z)) w.r.t. PN's parameters, on one chunk.
 
@@ -741,14 +754,8 @@ def policy_gradient(learner: Learner, states: np.ndarray, noise: np.ndarray, tot
     components, all action components)).
     """
     actions, policy_cache = learner.policy_forward(states, noise)  # (B*Z, dim A)
-    _, critic_cache = learner.critic.forward((states, actions))  # logits (B*Z, 1)
+    d_actions, critic_cache = neg_log_q_action_gradient(learner.critic, states, actions, total_rows)
     log_q = nets.log_sigmoid(critic_cache.logits)  # Q = log q, Eq. (10)
-    # d(-log q)/dx = -(1 - q), averaged over every (state, noise) row: gradient (6).
-    d_x = -nets.log_sigmoid_grad(critic_cache.logits) / total_rows
-    # The critic's action Jacobian, without its weight gradients: the critic stays fixed.
-    (_, d_actions), _ = learner.critic.backward(
-        d_x, critic_cache, through_head=False, param_grads=False, input_grads=(False, True)
-    )
     # Through tanh (or the Gaussian's reparameterisation) and PN.
     grads = learner.policy_backward(d_actions, policy_cache)
     saturated = (np.count_nonzero(np.abs(actions) > 0.99), actions.size)
@@ -909,14 +916,15 @@ def imitation_diagnostics(learner: Learner, expert_buffer: Triplets, rng) -> dic
     actions = learner.act(states, noise)
     q_expert, _ = learner.critic.forward((states, expert_buffer.actions))
     q_policy, policy_cache = learner.critic.forward((states, actions))
-    spread_noise = rng.standard_normal((len(states) * 8, learner.noise_dim), np.float32)
-    spread_actions = learner.act(np.repeat(states, 8, axis=0), spread_noise)
+    z_per_state = 8  # each state is shared by 8 consecutive noise rows (policy_forward)
+    spread_noise = rng.standard_normal((len(states) * z_per_state, learner.noise_dim), np.float32)
+    spread_actions = learner.act(states, spread_noise).reshape(len(states), z_per_state, -1)
     return {
         "expert_action_error": float(((actions - expert_buffer.actions) ** 2).mean()),
         "q_at_expert_action": float(q_expert.mean()),
         "q_at_policy_action": float(q_policy.mean()),
         "critic_input_grad": learner.critic.input_gradient_penalty(policy_cache)[0],
-        "policy_noise_spread": float(spread_actions.reshape(len(states), 8, -1).std(axis=1).mean()),
+        "policy_noise_spread": float(spread_actions.std(axis=1).mean()),
         **(
             {"policy_std": float(learner.policy_std(states).mean())}
             if learner.policy_type == "gaussian"
