@@ -35,6 +35,9 @@ Command line:
                                            [--methods BC GAIL ...] [--envs Hopper-v4 ...]
     python experiments.py figures quick|full [--runs DIR [DIR ...]] [--out DIR]
     python experiments.py curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination] [--x-max N]
+    python experiments.py hold RUN_DIR [RUN_DIR ...] [--since N] [--until N]
+    python experiments.py probe RUN_DIR [--episodes 3] [--steps 300]
+    python experiments.py gradient-noise RUN_DIR [--samples 8 128] [--draws 30]
 """
 
 from __future__ import annotations
@@ -1091,6 +1094,64 @@ def probe_critic(run_dir, episodes: int = 3, steps: int = 300, seed: int = 2_000
     return rows
 
 
+def gradient_noise(
+    run_dir, samples: Sequence[int] = (8, 128), draws: int = 30, seed: int = 0
+) -> list[dict]:
+    """How much of gradient (6)'s randomness comes from the noise z, at a run's checkpoint.
+
+    For each count Z of noise samples per state, `draws` policy steps' gradients are
+    computed as `offpac_il.update` would (fresh states and noise each time), and `draws`
+    more on one fixed batch of states with fresh noise only. Per row: the norm of their
+    mean, the total variance (summed over PN's parameters), the part of it left with the
+    states fixed (the noise's part; it shrinks as 1/Z), and mean_step_fraction, the
+    mean over parameters of |E g| / sqrt(E g^2): how far along the mean gradient an
+    RMSProp step goes, as a fraction of the learning rate. Nothing is updated.
+    """
+    import offpac_il
+
+    config, _, expert_buffer, learner, replay, _ = offpac_il.restore(run_dir)
+    rng = np.random.default_rng(seed)
+
+    def flat_gradient(states: np.ndarray, z: int) -> np.ndarray:
+        rows = len(states) * learner.samples_per_state(z)
+        noise = rng.standard_normal((rows, learner.noise_dim), np.float32)
+        _, grads, _ = offpac_il.policy_loss_and_grads(learner, states, noise)
+        return np.concatenate([g.ravel() for g in grads.values()]).astype(np.float64)
+
+    rows = []
+    for z in samples:
+        full = np.array(
+            [
+                flat_gradient(offpac_il.policy_states(expert_buffer, replay, config, rng), z)
+                for _ in range(draws)
+            ]
+        )
+        fixed = offpac_il.policy_states(expert_buffer, replay, config, rng)
+        noise_only = np.array([flat_gradient(fixed, z) for _ in range(draws)])
+        mean, total = full.mean(axis=0), full.var(axis=0, ddof=1).sum()
+        noise_variance = noise_only.var(axis=0, ddof=1).sum()
+        rows.append(
+            {
+                "noise_samples": z,
+                "mean_gradient_norm": float(np.linalg.norm(mean)),
+                "total_variance": float(total),
+                "noise_variance": float(noise_variance),
+                "noise_share": float(noise_variance / total) if total > 0 else 0.0,
+                "mean_step_fraction": float(
+                    np.mean(np.abs(mean) / (np.sqrt((full**2).mean(axis=0)) + 1e-30))
+                ),
+            }
+        )
+    return rows
+
+
+def print_rows(rows: list[dict]) -> None:
+    """A list of dicts as a ` | `-separated table on stdout."""
+    print(" | ".join(rows[0]))
+    for row in rows:
+        print(" | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row.values()))
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -1133,13 +1194,20 @@ def main(argv=None) -> int:
     probe.add_argument("--episodes", type=int, default=3)
     probe.add_argument("--steps", type=int, default=300, help="steps per episode")
     probe.add_argument("--seed", type=int, default=2_000_000, help="reset seed of the first")
+    noise = sub.add_parser(
+        "gradient-noise", help="the noise z's share of gradient (6)'s variance, a table"
+    )
+    noise.add_argument("run_dir")
+    noise.add_argument("--samples", type=int, nargs="+", default=[8, 128], metavar="Z")
+    noise.add_argument("--draws", type=int, default=30, help="gradients per estimate")
+    noise.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
 
     if args.command == "probe":
-        rows = probe_critic(args.run_dir, args.episodes, args.steps, args.seed)
-        print(" | ".join(rows[0]))
-        for row in rows:
-            print(" | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row.values()))
+        print_rows(probe_critic(args.run_dir, args.episodes, args.steps, args.seed))
+        return 0
+    if args.command == "gradient-noise":
+        print_rows(gradient_noise(args.run_dir, args.samples, args.draws, args.seed))
         return 0
     if args.command == "hold":
         print(hold_table(args.run_dirs, args.reach, args.floor, args.since, args.until))

@@ -821,13 +821,21 @@ def update(
     stats = critic_step(
         learner, expert_batch, replay.sample(rng, config.batch_size), config, critic_lr, rng
     )
-    policy_states = replay.sample(rng, config.batch_size).states  # line 13: a fresh batch
+    states = policy_states(expert_buffer, replay, config, rng)
+    stats.update(policy_step(learner, states, config, policy_lr, rng))
+    return stats
+
+
+def policy_states(
+    expert_buffer: Triplets, replay: ReplayBuffer, config: Config, rng: np.random.Generator
+) -> np.ndarray:
+    """The states of one policy step (batch_size, dim s)."""
+    states = replay.sample(rng, config.batch_size).states  # line 13: a fresh batch
     n_expert = round(config.policy_expert_states * config.batch_size)
     if n_expert:  # a deviation from Alg. 1 (on by default, README): some states from B_pi_E
         expert_rows = rng.integers(0, len(expert_buffer.states), n_expert)
-        policy_states[:n_expert] = expert_buffer.states[expert_rows]
-    stats.update(policy_step(learner, policy_states, config, policy_lr, rng))
-    return stats
+        states[:n_expert] = expert_buffer.states[expert_rows]
+    return states
 
 
 # ----------------------------------------------------------------------------------------

@@ -948,3 +948,25 @@ def test_restore_and_the_critic_probe(tmp_path, hopper_demos, monkeypatch):
     (better,) = experiments.probe_critic(tmp_path / "run", episodes=1, steps=20)
     assert 0 < better["steps"] <= 20
     assert better["gradient_cosine"] > 0.99 and better["expert_action_preferred"] == 1.0
+
+
+def test_gradient_noise_separates_the_noise_part_of_gradient_6(tmp_path, hopper_demos):
+    """`experiments.gradient_noise`: with the states fixed, what varies is the mean over
+    Z noise rows, whose variance shrinks as 1/Z; a deterministic policy has none."""
+    import experiments
+
+    offpac_il.train(tiny_config(tmp_path / "stochastic", hopper_demos))
+    low, high = experiments.gradient_noise(tmp_path / "stochastic", samples=(2, 32), draws=40)
+    assert (low["noise_samples"], high["noise_samples"]) == (2, 32)
+    assert 0 < high["noise_variance"] < low["noise_variance"]
+    assert 8 < low["noise_variance"] / high["noise_variance"] < 32  # 16 in expectation
+    for row in (low, high):
+        assert (
+            0 < row["noise_share"] == pytest.approx(row["noise_variance"] / row["total_variance"])
+        )
+        assert 0 < row["mean_step_fraction"] <= 1  # |E g| <= sqrt(E g^2)
+
+    run = tmp_path / "deterministic"
+    offpac_il.train(tiny_config(run, hopper_demos, extra=["--policy-type", "deterministic"]))
+    (row,) = experiments.gradient_noise(run, samples=(8,), draws=5)
+    assert row["noise_variance"] == 0 and row["total_variance"] > 0
