@@ -42,7 +42,6 @@ Command line:
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import json
@@ -508,8 +507,13 @@ def split_runnable(specs: Iterable[RunSpec]) -> tuple[list[RunSpec], dict[str, l
 
 def read_progress(run_dir) -> dict[str, np.ndarray]:
     """progress.csv as {column: float array}; empty cells become NaN."""
-    with open(Path(run_dir) / "progress.csv") as f:
-        rows = list(csv.DictReader(f))
+    from expert import UserError
+
+    try:
+        with open(Path(run_dir) / "progress.csv") as f:
+            rows = list(csv.DictReader(f))
+    except OSError as error:
+        raise UserError(f"{run_dir}: no readable progress.csv ({error.strerror})") from None
     if not rows:
         return {}
     return {
@@ -519,7 +523,12 @@ def read_progress(run_dir) -> dict[str, np.ndarray]:
 
 
 def read_config(run_dir) -> dict:
-    return json.loads((Path(run_dir) / "config.json").read_text())
+    from expert import UserError
+
+    try:
+        return json.loads((Path(run_dir) / "config.json").read_text())
+    except (OSError, ValueError):
+        raise UserError(f"{run_dir}: config.json missing or unreadable") from None
 
 
 @dataclass
@@ -1152,8 +1161,31 @@ def print_rows(rows: list[dict]) -> None:
         print(" | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row.values()))
 
 
+def at_least(minimum: int):
+    """An argparse type: an integer of at least `minimum`."""
+
+    def parse(text: str) -> int:
+        value = int(text)
+        if value < minimum:
+            raise ValueError
+        return value
+
+    parse.__name__ = f"count (at least {minimum})"  # argparse names it in its error
+    return parse
+
+
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    from expert import CommandLineParser, UserError
+
+    try:
+        return run_command(CommandLineParser, argv)
+    except UserError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+
+
+def run_command(parser_class, argv) -> int:
+    parser = parser_class(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("sweep", help="run (or resume, or skip) every run of a plan")
     run.add_argument("mode", choices=("quick", "full"))
@@ -1191,15 +1223,15 @@ def main(argv=None) -> int:
     hold.add_argument("--until", type=float, default=np.inf, help="ignore evaluations after")
     probe = sub.add_parser("probe", help="the critic at the learner's own states, a table")
     probe.add_argument("run_dir")
-    probe.add_argument("--episodes", type=int, default=3)
-    probe.add_argument("--steps", type=int, default=300, help="steps per episode")
+    probe.add_argument("--episodes", type=at_least(1), default=3)
+    probe.add_argument("--steps", type=at_least(1), default=300, help="steps per episode")
     probe.add_argument("--seed", type=int, default=2_000_000, help="reset seed of the first")
     noise = sub.add_parser(
         "gradient-noise", help="the noise z's share of gradient (6)'s variance, a table"
     )
     noise.add_argument("run_dir")
-    noise.add_argument("--samples", type=int, nargs="+", default=[8, 128], metavar="Z")
-    noise.add_argument("--draws", type=int, default=30, help="gradients per estimate")
+    noise.add_argument("--samples", type=at_least(1), nargs="+", default=[8, 128], metavar="Z")
+    noise.add_argument("--draws", type=at_least(2), default=30, help="gradients per estimate")
     noise.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
 

@@ -1046,10 +1046,22 @@ def prepare(config: Config, env, rng: np.random.Generator):
     return spaces, expert_buffer, learner, replay
 
 
+def checkpointed_config(run_dir) -> Config:
+    """The settings of the run in run_dir, which must hold a checkpoint."""
+    run_dir = Path(run_dir)
+    try:
+        saved = json.loads((run_dir / "config.json").read_text())
+    except (OSError, ValueError):
+        raise UserError(f"{run_dir} holds no run (config.json missing or unreadable)") from None
+    if not (run_dir / "checkpoint.npz").exists():
+        raise UserError(f"{run_dir} holds no checkpoint")
+    return saved_config({**saved, "run_dir": str(run_dir)})
+
+
 def restore(run_dir) -> tuple[Config, Spaces, Triplets, Learner, ReplayBuffer, Progress]:
     """A run as its last checkpoint left it (for looking into it, not for training)."""
     run_dir = Path(run_dir)
-    config = saved_config(json.loads((run_dir / "config.json").read_text()))
+    config = checkpointed_config(run_dir)
     rng = np.random.default_rng(config.seed)
     spaces, expert_buffer, learner, replay = prepare(config, expert.make_env(config.env), rng)
     progress = load_checkpoint(run_dir, learner, replay, rng)
@@ -1229,16 +1241,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     try:
         if args.resume:
-            run_dir = Path(args.resume)
-            try:
-                saved = json.loads((run_dir / "config.json").read_text())
-            except (OSError, ValueError):
-                raise UserError(
-                    f"{run_dir} holds no run to resume (config.json missing or unreadable)"
-                ) from None
-            if not (run_dir / "checkpoint.npz").exists():
-                raise UserError(f"{run_dir} holds no checkpoint to resume from")
-            config = saved_config({**saved, "run_dir": str(run_dir)})
+            config = checkpointed_config(args.resume)
         else:
             config = Config(
                 **{

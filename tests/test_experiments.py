@@ -480,3 +480,28 @@ def test_hold_command_prints_one_row_per_run(tmp_path, capsys):
     assert experiments.main(["hold", str(run_dir), "--since", "40000"]) == 0
     row = capsys.readouterr().out.strip().splitlines()[-1]
     assert row == f"| {run_dir} | 20.0 k | 1 of 2 | 0.70 | 1 of 2 / 0.83 / 0.70 | 0.97 (60 k) |"
+
+
+@pytest.mark.parametrize(
+    "argv, says",
+    [
+        (["hold", "{absent}"], "no readable progress.csv"),
+        (["curves", "{tmp}/c.png", "{absent}"], "config.json missing"),
+        (["probe", "{absent}"], "holds no run"),
+        (["gradient-noise", "{absent}"], "holds no run"),
+        (["gradient-noise", "{run}"], "holds no checkpoint"),
+        (["gradient-noise", "{run}", "--draws", "1"], "--draws"),
+        (["probe", "{run}", "--steps", "0"], "--steps"),
+        (["figures", "sideways"], "invalid choice"),
+    ],
+)
+def test_bad_command_lines_end_in_one_line_and_status_2(tmp_path, capsys, argv, says):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.json").write_text("{}")
+    names = {"absent": tmp_path / "absent", "tmp": tmp_path, "run": run}
+    with pytest.raises(SystemExit) as stop:
+        sys.exit(experiments.main([a.format(**names) for a in argv]))
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert says in err and err.count("\n") == 1
