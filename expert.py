@@ -1360,8 +1360,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--method",
         choices=("ars", "sac"),
         default="ars",
-        help="ARS V2-t (Hopper, HalfCheetah) or Soft Actor-Critic, sac.py (Walker2d, Ant, "
-        "Humanoid)",
+        help="ARS V2-t (Hopper, HalfCheetah, Humanoid) or Soft Actor-Critic, sac.py "
+        "(Walker2d, Ant)",
     )
     train_parser.add_argument("--seed", type=int, default=0)
     train_parser.add_argument(

@@ -3,9 +3,9 @@
 Haarnoja, Zhou, Hartikainen, Tucker, Ha, Tan, Kumar, Zhu, Gupta, Abbeel & Levine, "Soft
 Actor-Critic Algorithms and Applications", 2018 (https://arxiv.org/abs/1812.05905): the
 version of SAC with twin Q-functions and a learned entropy temperature. Equation numbers
-below are that paper's. ARS (expert.py) ships the Hopper and HalfCheetah experts; it falls
-short of the targets on Walker2d, Ant and Humanoid within a practical budget on 2 cores,
-so those are trained here, through ``python expert.py train --env Walker2d-v4 --method sac``.
+below are that paper's. ARS (expert.py) trains the Hopper, HalfCheetah and Humanoid experts;
+it falls short of the targets on Walker2d and Ant within a practical budget on 2 cores, so
+those are trained here, through ``python expert.py train --env Walker2d-v4 --method sac``.
 
 The paper's symbols and where they live:
 
