@@ -45,6 +45,7 @@ import math
 import multiprocessing
 import os
 import shlex
+import signal
 import sys
 import time
 import warnings
@@ -803,6 +804,9 @@ _worker_env: gym.Env | None = None
 
 def _init_worker(env_id: str) -> None:
     global _worker_env
+    # Ctrl-C reaches the whole process group; only the parent acts on it (it checkpoints
+    # and then closes the pool), so a worker is never cut off mid-task.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _worker_env = make_env(env_id)
 
 
@@ -1112,9 +1116,10 @@ def train(
                     f"± {returns.std():6.1f}" + ("  (best, saved)" if improved else "")
                 )
             state.wall_seconds = wall_at_start + time.monotonic() - started
-            if time.monotonic() - last_checkpoint >= checkpoint_seconds:
+            if nets.checkpoint_due(time.monotonic() - last_checkpoint, checkpoint_seconds):
                 state.save(checkpoint_path)
                 last_checkpoint = time.monotonic()
+                nets.stop_if_requested()  # Ctrl-C or kill, with the checkpoint written
         state.save(checkpoint_path)
     if state.best_weights is None:
         log(
@@ -1253,17 +1258,18 @@ def cli_train(args, argv) -> None:
         Path(args.checkpoint) if args.checkpoint else CHECKPOINTS_DIR / f"{args.env}.ckpt.npz"
     )
     out = Path(args.out) if args.out else default_expert_path(args.env)
-    train(
-        args.env,
-        args.seed,
-        config,
-        args.workers,
-        checkpoint,
-        out,
-        resume=args.resume,
-        command=command_line(argv),
-        log=lambda line: print(line, flush=True),
-    )
+    with nets.stop_at_next_checkpoint():
+        train(
+            args.env,
+            args.seed,
+            config,
+            args.workers,
+            checkpoint,
+            out,
+            resume=args.resume,
+            command=command_line(argv),
+            log=lambda line: print(line, flush=True),
+        )
 
 
 def cli_train_sac(args, argv) -> None:

@@ -5,6 +5,7 @@ exits with status 130, so nothing since its last periodic checkpoint is lost."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -17,6 +18,7 @@ from test_baselines import TINY_GAIL_FLAGS
 from test_offpac_il import TINY_RUN
 from test_sac import PENDULUM, TINY_FLAGS
 
+import expert
 import nets
 
 LONG = ["--eval-every", "100000", "--checkpoint-every", "1e9", "--log-every", "0"]
@@ -31,18 +33,24 @@ def command_of(kind: str, run_dir: Path, demos: Path) -> tuple[list[str], str]:
     if kind == "gail":
         args = ["baselines.py", "gail", *TINY_GAIL_FLAGS, "--demos", demos]
         return [*args, "--total-steps", "100000", *LONG, "--run-dir", run_dir], "interactions"
+    if kind == "ars":  # rollouts in 2 worker processes; a line per iteration
+        args = ["expert.py", "train", "--env", PENDULUM, "--workers", "2", "--steps", "1e8"]
+        args += ["--eval-every", "1", "--checkpoint", run_dir / "checkpoint.npz"]
+        return [*args, "--out", run_dir.parent / "x.npz"], "iteration"
     args = ["expert.py", "train", "--env", PENDULUM, "--method", "sac", *TINY_FLAGS]
     args += ["--steps", "100000", *LONG, "--run-dir", run_dir, "--out", run_dir.parent / "x.npz"]
     return args, "env_steps"
 
 
 def checkpointed_interactions(run_dir: Path, counter: str) -> int:
+    if counter == "iteration":
+        return expert.ARSState.load(run_dir / "checkpoint.npz").iteration
     counters = nets.load_arrays(run_dir / "checkpoint.npz")["counters"]
     return json.loads(str(counters))[counter]
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
-@pytest.mark.parametrize("kind", ["learner", "gail", "sac"])
+@pytest.mark.parametrize("kind", ["learner", "gail", "sac", "ars"])
 def test_a_signal_stops_the_run_at_its_next_checkpoint(tmp_path, hopper_demos, kind, signum):
     run_dir = tmp_path / "run"
     command, counter = command_of(kind, run_dir, hopper_demos)
@@ -52,15 +60,20 @@ def test_a_signal_stops_the_run_at_its_next_checkpoint(tmp_path, hopper_demos, k
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        start_new_session=True,  # a process group of its own, as a shell job has
     )
     try:
         # Once a few training lines are out, the run is past any checkpoint from its start.
-        deadline, trained = time.time() + 120, 0
+        deadline, trained, last = time.time() + 120, 0, ""
         while trained < 3 and time.time() < deadline:
             line = process.stdout.readline()
             assert line, f"the run ended early: {process.communicate()[1]}"
-            trained += line.startswith("train")
-        process.send_signal(signum)
+            trained += line.startswith(("train", "iteration"))
+            last = line if line.startswith("iteration") else last
+        if signum == signal.SIGINT:  # Ctrl-C: the whole process group, workers included
+            os.killpg(process.pid, signum)
+        else:  # kill PID: the run's own process
+            process.send_signal(signum)
         _, stderr = process.communicate(timeout=60)
     finally:
         if process.poll() is None:  # it ignored the signal: the test fails, nothing is left
@@ -70,3 +83,5 @@ def test_a_signal_stops_the_run_at_its_next_checkpoint(tmp_path, hopper_demos, k
     assert process.returncode == 130, stderr
     assert stderr.strip().splitlines()[-1] == "interrupted; continue with --resume"
     assert checkpointed_interactions(run_dir, counter) > 0
+    if kind == "ars":  # checkpointed at the signal, not only by the 10 s clock
+        assert checkpointed_interactions(run_dir, counter) >= int(last.split()[1])
