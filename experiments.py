@@ -1122,8 +1122,7 @@ def gradient_noise(
     rng = np.random.default_rng(seed)
 
     def flat_gradient(states: np.ndarray, z: int) -> np.ndarray:
-        rows = len(states) * learner.samples_per_state(z)
-        noise = rng.standard_normal((rows, learner.noise_dim), np.float32)
+        noise = offpac_il.policy_noise(learner, len(states), z, rng)
         _, grads, _ = offpac_il.policy_loss_and_grads(learner, states, noise)
         return np.concatenate([g.ravel() for g in grads.values()]).astype(np.float64)
 
@@ -1161,31 +1160,21 @@ def print_rows(rows: list[dict]) -> None:
         print(" | ".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in row.values()))
 
 
-def at_least(minimum: int):
-    """An argparse type: an integer of at least `minimum`."""
-
-    def parse(text: str) -> int:
-        value = int(text)
-        if value < minimum:
-            raise ValueError
-        return value
-
-    parse.__name__ = f"count (at least {minimum})"  # argparse names it in its error
-    return parse
-
-
 def main(argv=None) -> int:
-    from expert import CommandLineParser, UserError
+    from expert import UserError
 
     try:
-        return run_command(CommandLineParser, argv)
+        return run_command(argv)
     except UserError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
 
 
-def run_command(parser_class, argv) -> int:
-    parser = parser_class(description=__doc__.splitlines()[0])
+def run_command(argv) -> int:
+    """main's work; a user's mistake raises UserError."""
+    from expert import CommandLineParser, UserError, positive_int
+
+    parser = CommandLineParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("sweep", help="run (or resume, or skip) every run of a plan")
     run.add_argument("mode", choices=("quick", "full"))
@@ -1223,15 +1212,15 @@ def run_command(parser_class, argv) -> int:
     hold.add_argument("--until", type=float, default=np.inf, help="ignore evaluations after")
     probe = sub.add_parser("probe", help="the critic at the learner's own states, a table")
     probe.add_argument("run_dir")
-    probe.add_argument("--episodes", type=at_least(1), default=3)
-    probe.add_argument("--steps", type=at_least(1), default=300, help="steps per episode")
+    probe.add_argument("--episodes", type=positive_int, default=3)
+    probe.add_argument("--steps", type=positive_int, default=300, help="steps per episode")
     probe.add_argument("--seed", type=int, default=2_000_000, help="reset seed of the first")
     noise = sub.add_parser(
         "gradient-noise", help="the noise z's share of gradient (6)'s variance, a table"
     )
     noise.add_argument("run_dir")
-    noise.add_argument("--samples", type=at_least(1), nargs="+", default=[8, 128], metavar="Z")
-    noise.add_argument("--draws", type=at_least(2), default=30, help="gradients per estimate")
+    noise.add_argument("--samples", type=positive_int, nargs="+", default=[8, 128], metavar="Z")
+    noise.add_argument("--draws", type=positive_int, default=30, help="gradients per estimate")
     noise.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
 
@@ -1239,6 +1228,8 @@ def run_command(parser_class, argv) -> int:
         print_rows(probe_critic(args.run_dir, args.episodes, args.steps, args.seed))
         return 0
     if args.command == "gradient-noise":
+        if args.draws < 2:
+            raise UserError("--draws must be at least 2: a variance needs two gradients")
         print_rows(gradient_noise(args.run_dir, args.samples, args.draws, args.seed))
         return 0
     if args.command == "hold":

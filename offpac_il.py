@@ -789,15 +789,21 @@ def policy_loss_and_grads(learner: Learner, states: np.ndarray, noise: np.ndarra
     return sum(p[1] for p in parts), grads, stats
 
 
+def policy_noise(
+    learner: Learner, n_states: int, samples: int, rng: np.random.Generator
+) -> np.ndarray:
+    """z ~ N(0, I) for gradient (6): (n_states * Z, dim z), Z = `samples` consecutive rows
+    per state (one for the deterministic policy)."""
+    rows = n_states * learner.samples_per_state(samples)
+    return rng.standard_normal((rows, learner.noise_dim), np.float32)
+
+
 def policy_step(
     learner: Learner, replay_states: np.ndarray, config: Config, lr: float, rng: np.random.Generator
 ) -> dict[str, float]:
     """One RMSProp step on PN by gradient (6), over `noise_samples` z per state (one for
     the deterministic policy)."""
-    noise = rng.standard_normal(
-        (len(replay_states) * learner.samples_per_state(config.noise_samples), learner.noise_dim),
-        np.float32,
-    )
+    noise = policy_noise(learner, len(replay_states), config.noise_samples, rng)
     _, grads, stats = policy_loss_and_grads(learner, replay_states, noise)
     learner.policy_optimizer.step(learner.policy.params, grads, lr)
     stats["policy_grad_norm"] = math.sqrt(sum(float((g * g).sum()) for g in grads.values()))
