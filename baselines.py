@@ -561,11 +561,6 @@ GAIL_DIAGNOSTICS = (
 )
 
 
-def rounded(value):
-    """Counts as they are, measurements to 5 significant digits (as the learner's rows)."""
-    return value if isinstance(value, int) else float(f"{value:.5g}")
-
-
 def method_of(config: RunSettings) -> str:
     if isinstance(config, BCConfig):
         return "bc"
@@ -673,7 +668,9 @@ class Run:
         diagnostics.csv. Returns the progress row.
         """
         progress, config = self.progress, self.config
-        returns = offpac_il.evaluate(self.env, policy, self.spaces, config, progress.eval_rounds)
+        returns, falls = offpac_il.evaluate(
+            self.env, policy, self.spaces, config, progress.eval_rounds
+        )
         # How the policy acts on the expert's own states (as the learner's rows record).
         rng = np.random.default_rng([config.seed, 2, progress.eval_rounds])
         noise = rng.standard_normal(self.expert_actions.shape, np.float32)
@@ -684,6 +681,7 @@ class Run:
             "saturation": float(np.mean(np.abs(sampled) >= 1.0)),  # components clipped
             "expert_action_error": float(((executed - self.expert_actions) ** 2).mean()),
             "mean_log_std": float(policy.log_std.mean()),
+            "eval_falls": falls,
             "interactions": progress.interactions,
             "updates": progress.updates,
         }
@@ -700,14 +698,14 @@ class Run:
             "normalized_score": round(self.normalized(float(returns.mean())), 4),
             "train_return": round(float(np.mean(recent)), 2) if recent else "",
             **{
-                name: rounded(measured[name]) if name in measured else ""
+                name: offpac_il.rounded(measured[name]) if name in measured else ""
                 for name in offpac_il.PROGRESS_FIELDS[8:]
             },
         }
         progress.rows.append(row)
         recent.clear()
         diagnostics = {
-            name: rounded(measured[name]) if name in measured else ""
+            name: offpac_il.rounded(measured[name]) if name in measured else ""
             for name in self.diagnostic_fields
         }
         agent.diagnostics.append(diagnostics)

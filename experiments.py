@@ -910,6 +910,7 @@ def hold_stats(
     floor: float = 0.8,
     since: float = 40_000,
     until: float = np.inf,
+    eval_episodes: int = 5,
 ) -> dict:
     """Does a run reach the expert and stay there (the README's reach-and-hold target)?
 
@@ -918,17 +919,24 @@ def hold_stats(
     with score >= reach (NaN: never); after: evaluations after that one, below_floor:
     how many of them scored < floor, lowest: the lowest of them; from `since` on:
     evaluations, how many >= reach, their mean and lowest; last: the last evaluation's
-    score and interactions.
+    score and interactions. falls_after / fall_episodes: evaluation episodes after the
+    first reach that fell, out of how many (counting only rows that record eval_falls;
+    runs started before that column existed record none), given `eval_episodes` per row.
     """
     kept = progress["interactions"] <= until
     x, score = progress["interactions"][kept], progress["normalized_score"][kept]
     reached = np.flatnonzero(score >= reach)
     stats = {"first_reach": float(x[reached[0]]) if reached.size else np.nan}
     later = score[reached[0] + 1 :] if reached.size else np.array([])
+    falls = progress.get("eval_falls", np.full(len(kept), np.nan))[kept]
+    later_falls = falls[reached[0] + 1 :] if reached.size else np.array([])
+    recorded = ~np.isnan(later_falls)
     stats.update(
         after=len(later),
         below_floor=int((later < floor).sum()),
         lowest=float(later.min()) if later.size else np.nan,
+        falls_after=int(later_falls[recorded].sum()),
+        fall_episodes=int(recorded.sum()) * eval_episodes,
     )
     tail = score[x >= since]
     stats.update(
@@ -954,14 +962,19 @@ def hold_table(
     tables)."""
     lines = [
         f"| Run | first >= {reach} | evaluations after it < {floor} | lowest after it "
+        f"| episodes after it that fell "
         f"| from {since / 1000:g} k on: >= {reach} / mean / lowest | last |",
-        "|---|---:|---:|---:|---:|---:|",
+        "|---|---:|---:|---:|---:|---:|---:|",
     ]
     for run_dir in run_dirs:
-        h = hold_stats(read_progress(run_dir), reach, floor, since, until)
+        has_config = (Path(run_dir) / "config.json").exists()
+        episodes = read_config(run_dir).get("eval_episodes", 0) if has_config else 0
+        h = hold_stats(read_progress(run_dir), reach, floor, since, until, episodes)
         first = "never" if np.isnan(h["first_reach"]) else f"{h['first_reach'] / 1000:.1f} k"
+        fell = f"{h['falls_after']} of {h['fall_episodes']}" if h["fall_episodes"] else "-"
         lines.append(
             f"| {run_dir} | {first} | {h['below_floor']} of {h['after']} | {h['lowest']:.2f} "
+            f"| {fell} "
             f"| {h['since_reach']} of {h['since_evaluations']} / {h['since_mean']:.2f} / "
             f"{h['since_lowest']:.2f} | {h['last']:.2f} ({h['last_interactions'] / 1000:g} k) |"
         )

@@ -900,18 +900,22 @@ def run_episode(
 
 
 def evaluate(env, learner: Learner, spaces: Spaces, config: Config, round_index: int):
-    """True returns of the stochastic policy over `eval_episodes` seeded episodes.
+    """True returns of the stochastic policy over `eval_episodes` seeded episodes, and
+    how many of them fell (ended by termination, before the time limit).
 
     Evaluation has its own Generator (seeded from the run's seed and the round), so it
     never shifts the training noise: a run evaluated more often learns the same way.
+    The fall count separates "one episode of five fell" from "every episode is worse",
+    which the mean return alone cannot.
     """
     rng = np.random.default_rng([config.seed, 1, round_index])
-    return np.array(
-        [
-            run_episode(env, learner, spaces, rng, seed=10**6 + config.seed * 1000 + i)[0]
-            for i in range(config.eval_episodes)
-        ]
-    )
+    episodes = [
+        run_episode(env, learner, spaces, rng, seed=10**6 + config.seed * 1000 + i)
+        for i in range(config.eval_episodes)
+    ]
+    time_limit = env.spec.max_episode_steps if env.spec is not None else None
+    falls = sum(length < time_limit for _, length in episodes) if time_limit else 0
+    return np.array([episode_return for episode_return, _ in episodes]), falls
 
 
 def imitation_diagnostics(learner: Learner, expert_buffer: Triplets, rng) -> dict[str, float]:
@@ -972,6 +976,7 @@ PROGRESS_FIELDS = (
     # Added later: blank in the rows of runs started before them.
     "critic_input_grad",
     "policy_noise_spread",
+    "eval_falls",  # evaluation episodes that ended before the time limit
 )
 # Columns that only an ablation writes, after the others (a default run's file keeps
 # the columns above and nothing else).
@@ -1001,6 +1006,11 @@ class Progress:
     recent_returns: list[float] = field(default_factory=list)  # since the last evaluation
     last_stats: dict[str, float] = field(default_factory=dict)  # of the latest update
     rows: list[dict] = field(default_factory=list)
+
+
+def rounded(value):
+    """Counts as they are, measurements to 5 significant digits."""
+    return value if isinstance(value, int) else float(f"{value:.5g}")
 
 
 def progress_csv(rows: list[dict]) -> str:
@@ -1114,12 +1124,12 @@ def train(config: Config, resume: bool = False) -> Progress:
         )  # true when resuming a run that had already finished
         due = progress.interactions >= progress.eval_rounds * config.eval_every
         if not evaluated_here and (due or progress.interactions >= config.total_steps):
-            returns = evaluate(eval_env, learner, spaces, config, progress.eval_rounds)
+            returns, falls = evaluate(eval_env, learner, spaces, config, progress.eval_rounds)
             diagnostics = imitation_diagnostics(
                 learner,
                 expert_buffer,
                 np.random.default_rng([config.seed, 2, progress.eval_rounds]),
-            )
+            ) | {"eval_falls": falls}
             progress.eval_rounds += 1
             progress.wall_seconds = time.perf_counter() - started
             row = {
@@ -1132,7 +1142,7 @@ def train(config: Config, resume: bool = False) -> Progress:
                 "normalized_score": round(normalized(float(returns.mean())), 4),
                 "train_return": round(float(np.mean(recent_returns)), 2) if recent_returns else "",
                 **{
-                    k: float(f"{value[k]:.5g}") if k in value else ""
+                    k: rounded(value[k]) if k in value else ""
                     for k in progress_fields(config)[8:]
                     for value in [{**stats, **diagnostics}]
                 },

@@ -464,6 +464,19 @@ def test_hold_stats_counts_the_dips_after_the_first_crossing():
     assert (h["last"], h["last_interactions"]) == (0.79, 50_000)
 
 
+def test_hold_stats_counts_falls_after_the_first_crossing_where_recorded():
+    progress = {
+        "interactions": np.array([0, 10_000, 20_000, 30_000, 40_000.0]),
+        "normalized_score": np.array([0.0, 0.95, 0.8, 0.99, 0.7]),
+        # 4 falls before the crossing do not count; the 20 k row predates the column
+        "eval_falls": np.array([4, 0, np.nan, 0, 2]),
+    }
+    h = experiments.hold_stats(progress, eval_episodes=5)
+    assert (h["falls_after"], h["fall_episodes"]) == (2, 10)
+    h = experiments.hold_stats({k: v for k, v in progress.items() if k != "eval_falls"})
+    assert (h["falls_after"], h["fall_episodes"]) == (0, 0)
+
+
 def test_hold_stats_of_a_run_that_never_reaches():
     progress = {"interactions": np.array([0, 5_000.0]), "normalized_score": np.array([0.1, 0.3])}
     h = experiments.hold_stats(progress, since=0)
@@ -472,14 +485,20 @@ def test_hold_stats_of_a_run_that_never_reaches():
 
 
 def test_hold_command_prints_one_row_per_run(tmp_path, capsys):
-    run_dir = tmp_path / "run"
-    run_dir.mkdir()
-    (run_dir / "progress.csv").write_text(
+    old, new = tmp_path / "old", tmp_path / "new"
+    old.mkdir(), new.mkdir()
+    (old / "progress.csv").write_text(
         "interactions,normalized_score\n0,0.0\n20000,0.95\n40000,0.7\n60000,0.97\n"
     )
-    assert experiments.main(["hold", str(run_dir), "--since", "40000"]) == 0
-    row = capsys.readouterr().out.strip().splitlines()[-1]
-    assert row == f"| {run_dir} | 20.0 k | 1 of 2 | 0.70 | 1 of 2 / 0.83 / 0.70 | 0.97 (60 k) |"
+    (new / "config.json").write_text('{"eval_episodes": 5}')
+    (new / "progress.csv").write_text(
+        "interactions,normalized_score,eval_falls\n0,0.0,5\n20000,0.95,0\n40000,0.7,1\n"
+        "60000,0.97,0\n"
+    )
+    assert experiments.main(["hold", str(old), str(new), "--since", "40000"]) == 0
+    rows = capsys.readouterr().out.strip().splitlines()[-2:]
+    tail = "| 20.0 k | 1 of 2 | 0.70 | {} | 1 of 2 / 0.83 / 0.70 | 0.97 (60 k) |"
+    assert rows == [f"| {old} {tail.format('-')}", f"| {new} {tail.format('1 of 10')}"]
 
 
 @pytest.mark.parametrize(

@@ -209,12 +209,28 @@ def test_critic_input_grad_diagnostic_is_half_the_squared_input_gradient():
 
 
 def test_rows_written_before_a_column_existed_leave_it_blank():
-    later = ("critic_input_grad", "policy_noise_spread")
+    later = ("critic_input_grad", "policy_noise_spread", "eval_falls")
     old = {name: 1.0 for name in offpac_il.PROGRESS_FIELDS if name not in later}
     new = {name: 2.0 for name in offpac_il.PROGRESS_FIELDS}
     header, first, second = offpac_il.progress_csv([old, new]).splitlines()
     assert header.split(",") == list(offpac_il.PROGRESS_FIELDS)
-    assert first.split(",")[-2:] == ["", ""] and second.split(",")[-2:] == ["2.0", "2.0"]
+    assert first.split(",")[-3:] == ["", "", ""] and second.split(",")[-3:] == ["2.0"] * 3
+
+
+@pytest.mark.parametrize("time_limit, falls", [(1000, 3), (4, 0)])
+def test_evaluation_counts_the_episodes_that_fell(time_limit, falls):
+    """An untrained Hopper falls within a few dozen steps: with the 1000-step limit every
+    episode ends by a fall; cut off by a 4-step limit first, none does."""
+    import expert
+
+    env = expert.make_env("Hopper-v4", max_episode_steps=time_limit)
+    config = offpac_il.Config(policy_hidden=(4, 4), critic_hidden=(4, 4), eval_episodes=3)
+    zeros = np.zeros((2, 11), np.float32)
+    demos = expert.Demos(zeros, np.zeros((2, 3), np.float32), zeros, np.zeros(2, bool))
+    spaces = offpac_il.make_spaces(env, demos, config)
+    learner = offpac_il.Learner.create(11, 11, 3, config, np.random.default_rng(0))
+    returns, counted = offpac_il.evaluate(env, learner, spaces, config, round_index=0)
+    assert returns.shape == (3,) and counted == falls
 
 
 def test_policy_noise_spread_is_how_much_the_action_moves_with_z():
