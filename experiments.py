@@ -37,6 +37,7 @@ Command line:
     python experiments.py curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination] [--x-max N]
     python experiments.py hold RUN_DIR [RUN_DIR ...] [--since N] [--until N]
     python experiments.py probe RUN_DIR [--episodes 3] [--steps 300]
+    python experiments.py evaluate RUN_DIR [--policy final|best|checkpoint] [--episodes 20]
     python experiments.py gradient-noise RUN_DIR [--samples 8 128] [--draws 30]
 """
 
@@ -1166,6 +1167,56 @@ def gradient_noise(
     return rows
 
 
+POLICY_FILES = {
+    "final": "policy_final.npz",
+    "best": "policy_best.npz",
+    "checkpoint": "checkpoint.npz",
+}
+
+
+def evaluate_policy(run_dir, policy: str = "final", episodes: int = 20, seed: int = 3_000_000):
+    """A learner run's saved policy over `episodes` episodes, one row each.
+
+    policy: "final" (policy_final.npz), "best" (policy_best.npz) or "checkpoint" (the
+    policy in checkpoint.npz). Episodes start from reset seeds seed, seed + 1, ..., which
+    a run's own evaluations (10**6 + ...) never use, with the policy's noise z drawn from
+    a Generator seeded by `seed`. Each row: return, length, fell (ended before the time
+    limit) and normalised score. A run evaluates 5 episodes from the same starts every
+    time; this estimates how often the policy falls from starts it was never scored on.
+    """
+    import expert
+    import nets
+    import offpac_il
+    from expert import UserError
+
+    run_dir = Path(run_dir)
+    saved = read_config(run_dir)
+    if "method" in saved:
+        raise UserError(f"{run_dir} is a {saved['method']} run; evaluate reads offpac_il.py runs")
+    path = run_dir / POLICY_FILES[policy]
+    if not path.exists():
+        raise UserError(f"{path} does not exist")
+    config = offpac_il.saved_config({**saved, "run_dir": str(run_dir)})
+    env = expert.make_env(config.env)
+    spaces, _, learner, _ = offpac_il.prepare(config, env, np.random.default_rng(config.seed))
+    learner.load_policy_state(nets.load_arrays(path))
+    rng = np.random.default_rng(seed)
+    random_return, expert_return = expert.reference_returns(config.env)
+    rows = []
+    for episode in range(episodes):
+        total, length = offpac_il.run_episode(env, learner, spaces, rng, seed + episode)
+        rows.append(
+            {
+                "seed": seed + episode,
+                "return": round(total, 1),
+                "length": length,
+                "fell": length < env.spec.max_episode_steps,
+                "normalized_score": (total - random_return) / (expert_return - random_return),
+            }
+        )
+    return rows
+
+
 def print_rows(rows: list[dict]) -> None:
     """A list of dicts as a ` | `-separated table on stdout."""
     print(" | ".join(rows[0]))
@@ -1228,6 +1279,13 @@ def run_command(argv) -> int:
     probe.add_argument("--episodes", type=positive_int, default=3)
     probe.add_argument("--steps", type=positive_int, default=300, help="steps per episode")
     probe.add_argument("--seed", type=int, default=2_000_000, help="reset seed of the first")
+    evaluation = sub.add_parser(
+        "evaluate", help="a run's saved policy over many episodes: returns and falls, a table"
+    )
+    evaluation.add_argument("run_dir")
+    evaluation.add_argument("--policy", choices=list(POLICY_FILES), default="final")
+    evaluation.add_argument("--episodes", type=positive_int, default=20)
+    evaluation.add_argument("--seed", type=int, default=3_000_000, help="reset seed of the first")
     noise = sub.add_parser(
         "gradient-noise", help="the noise z's share of gradient (6)'s variance, a table"
     )
@@ -1239,6 +1297,16 @@ def run_command(argv) -> int:
 
     if args.command == "probe":
         print_rows(probe_critic(args.run_dir, args.episodes, args.steps, args.seed))
+        return 0
+    if args.command == "evaluate":
+        rows = evaluate_policy(args.run_dir, args.policy, args.episodes, args.seed)
+        print_rows(rows)
+        scores = np.array([row["normalized_score"] for row in rows])
+        falls = sum(row["fell"] for row in rows)
+        print(
+            f"normalised score {scores.mean():.3f} ± {scores.std():.3f};"
+            f" {falls} of {len(rows)} episodes fell"
+        )
         return 0
     if args.command == "gradient-noise":
         if args.draws < 2:

@@ -491,14 +491,18 @@ class Learner:
             arrays.update(self.reward_optimizer.state("reward_rmsprop"))
         return arrays
 
-    def load_state(self, arrays) -> None:
+    def load_policy_state(self, arrays) -> None:
+        """The inverse of policy_state (a policy file, or a checkpoint's policy)."""
         self.policy.load_state(arrays, "policy")
+        if self.fixed_noise is not None:
+            self.fixed_noise[...] = arrays["policy/fixed_noise"]
+
+    def load_state(self, arrays) -> None:
+        self.load_policy_state(arrays)
         self.critic.load_state(arrays, "critic")
         self.target_critic.load_state(arrays, "target_critic")
         self.policy_optimizer.load_state(arrays, "policy_rmsprop")
         self.critic_optimizer.load_state(arrays, "critic_rmsprop")
-        if self.fixed_noise is not None:
-            self.fixed_noise[...] = arrays["policy/fixed_noise"]
         if self.reward is not None:
             self.reward.load_state(arrays, "reward")
             self.reward_optimizer.load_state(arrays, "reward_rmsprop")

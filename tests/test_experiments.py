@@ -512,6 +512,9 @@ def test_hold_command_prints_one_row_per_run(tmp_path, capsys):
         (["gradient-noise", "{run}", "--draws", "1"], "--draws"),
         (["probe", "{run}", "--steps", "0"], "--steps"),
         (["figures", "sideways"], "invalid choice"),
+        (["evaluate", "{absent}"], "config.json missing"),
+        (["evaluate", "{run}"], "policy_final.npz does not exist"),
+        (["evaluate", "{run}", "--policy", "worst"], "invalid choice"),
     ],
 )
 def test_bad_command_lines_end_in_one_line_and_status_2(tmp_path, capsys, argv, says):

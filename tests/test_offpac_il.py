@@ -966,6 +966,32 @@ def test_restore_and_the_critic_probe(tmp_path, hopper_demos, monkeypatch):
     assert better["gradient_cosine"] > 0.99 and better["expert_action_preferred"] == 1.0
 
 
+def test_evaluate_plays_the_saved_policy_from_new_starts(tmp_path, hopper_demos):
+    """`experiments.evaluate_policy` plays the run's policy file, episode i from reset
+    seed `seed + i` with noise from a Generator seeded by `seed`, as run_episode does
+    with the restored learner, and says which episodes fell."""
+    import experiments
+    import expert
+
+    offpac_il.train(tiny_config(tmp_path / "run", hopper_demos))
+    rows = experiments.evaluate_policy(tmp_path / "run", "final", episodes=3, seed=7)
+    assert rows == experiments.evaluate_policy(tmp_path / "run", "checkpoint", 3, seed=7)
+    _, spaces, _, learner, _, _ = offpac_il.restore(tmp_path / "run")
+    env, rng = expert.make_env("Hopper-v4"), np.random.default_rng(7)
+    random_return, expert_return = expert.reference_returns("Hopper-v4")
+    for i, row in enumerate(rows):
+        total, length = offpac_il.run_episode(env, learner, spaces, rng, 7 + i)
+        assert (row["seed"], row["return"], row["length"]) == (7 + i, round(total, 1), length)
+        assert row["fell"] == (length < 1000)
+        assert row["normalized_score"] == pytest.approx(
+            (total - random_return) / (expert_return - random_return)
+        )
+    # A different policy in the file plays differently.
+    arrays = nets.load_arrays(tmp_path / "run" / "policy_final.npz")
+    nets.save_arrays(tmp_path / "run" / "policy_final.npz", {k: 2 * v for k, v in arrays.items()})
+    assert experiments.evaluate_policy(tmp_path / "run", "final", 3, seed=7) != rows
+
+
 def test_gradient_noise_separates_the_noise_part_of_gradient_6(tmp_path, hopper_demos):
     """`experiments.gradient_noise`: with the states fixed, what varies is the mean over
     Z noise rows, whose variance shrinks as 1/Z; a deterministic policy has none."""
