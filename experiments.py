@@ -37,7 +37,8 @@ Command line:
     python experiments.py curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination] [--x-max N]
     python experiments.py hold RUN_DIR [RUN_DIR ...] [--since N] [--until N]
     python experiments.py probe RUN_DIR [--episodes 3] [--steps 300]
-    python experiments.py evaluate RUN_DIR [--policy final|best|checkpoint] [--episodes 20]
+    python experiments.py evaluate RUN_DIR [--policy final|best|checkpoint|N|snapshots]
+                                           [--episodes 20]
     python experiments.py gradient-noise RUN_DIR [--samples 8 128] [--draws 30]
 """
 
@@ -1174,16 +1175,23 @@ POLICY_FILES = {
 }
 
 
-def evaluate_policy(run_dir, policy: str = "final", episodes: int = 20, seed: int = 3_000_000):
-    """A learner run's saved policy over `episodes` episodes, one row each.
+def policy_file(run_dir, policy: str) -> Path:
+    """final, best, checkpoint (the policy in checkpoint.npz), or a number: the policy
+    snapshot taken at the evaluation after that many interactions."""
+    import offpac_il
+    from expert import UserError
 
-    policy: "final" (policy_final.npz), "best" (policy_best.npz) or "checkpoint" (the
-    policy in checkpoint.npz). Episodes start from reset seeds seed, seed + 1, ..., which
-    a run's own evaluations (10**6 + ...) never use, with the policy's noise z drawn from
-    a Generator seeded by `seed`. Each row: return, length, fell (ended before the time
-    limit) and normalised score. A run evaluates 5 episodes from the same starts every
-    time; this estimates how often the policy falls from starts it was never scored on.
-    """
+    if policy in POLICY_FILES:
+        return Path(run_dir) / POLICY_FILES[policy]
+    if policy.isdigit():
+        return offpac_il.snapshot_path(run_dir, int(policy))
+    raise UserError(
+        f"--policy {policy}: not final, best, checkpoint, snapshots or a snapshot's interactions"
+    )
+
+
+def policy_player(run_dir):
+    """play(path, episodes, seed): rows of a learner run's saved policy (see evaluate_policy)."""
     import expert
     import nets
     import offpac_il
@@ -1193,25 +1201,72 @@ def evaluate_policy(run_dir, policy: str = "final", episodes: int = 20, seed: in
     saved = read_config(run_dir)
     if "method" in saved:
         raise UserError(f"{run_dir} is a {saved['method']} run; evaluate reads offpac_il.py runs")
-    path = run_dir / POLICY_FILES[policy]
-    if not path.exists():
-        raise UserError(f"{path} does not exist")
     config = offpac_il.saved_config({**saved, "run_dir": str(run_dir)})
     env = expert.make_env(config.env)
     spaces, _, learner, _ = offpac_il.prepare(config, env, np.random.default_rng(config.seed))
-    learner.load_policy_state(nets.load_arrays(path))
-    rng = np.random.default_rng(seed)
     random_return, expert_return = expert.reference_returns(config.env)
-    rows = []
-    for episode in range(episodes):
-        total, length = offpac_il.run_episode(env, learner, spaces, rng, seed + episode)
+
+    def play(path: Path, episodes: int, seed: int) -> list[dict]:
+        learner.load_policy_state(nets.load_arrays(path))
+        rng = np.random.default_rng(seed)
+        rows = []
+        for episode in range(episodes):
+            total, length = offpac_il.run_episode(env, learner, spaces, rng, seed + episode)
+            rows.append(
+                {
+                    "seed": seed + episode,
+                    "return": round(total, 1),
+                    "length": length,
+                    "fell": length < env.spec.max_episode_steps,
+                    "normalized_score": (total - random_return) / (expert_return - random_return),
+                }
+            )
+        return rows
+
+    return play
+
+
+def evaluate_policy(run_dir, policy: str = "final", episodes: int = 20, seed: int = 3_000_000):
+    """A learner run's saved policy (`policy_file`) over `episodes` episodes, one row each.
+
+    Episodes start from reset seeds seed, seed + 1, ..., which a run's own evaluations
+    (10**6 + ...) never use, with the policy's noise z drawn from a Generator seeded by
+    `seed`. Each row: return, length, fell (ended before the time limit) and normalised
+    score. A run evaluates 5 episodes from the same starts every time; this estimates
+    how often the policy falls from starts it was never scored on.
+    """
+    from expert import UserError
+
+    read_config(run_dir)  # a run at all, before its files
+    path = policy_file(run_dir, policy)
+    if not path.exists():
+        raise UserError(f"{path} does not exist")
+    return policy_player(run_dir)(path, episodes, seed)
+
+
+def evaluate_snapshots(run_dir, episodes: int = 20, seed: int = 3_000_000) -> list[dict]:
+    """Every policy snapshot of a run (one per evaluation), each over the same
+    `episodes` new starts as evaluate_policy: one row per snapshot with its mean and
+    lowest normalised score and how many episodes fell. Set beside progress.csv, it
+    tells an unlucky evaluation (five starts) from a policy that got worse."""
+    import offpac_il
+    from expert import UserError
+
+    read_config(run_dir)  # a run at all, before its files
+    paths = sorted((Path(run_dir) / offpac_il.SNAPSHOTS).glob("*.npz"))
+    if not paths:
+        raise UserError(f"{run_dir} holds no policy snapshots")
+    play, rows = policy_player(run_dir), []
+    for path in paths:
+        played = play(path, episodes, seed)
+        scores = np.array([row["normalized_score"] for row in played])
         rows.append(
             {
-                "seed": seed + episode,
-                "return": round(total, 1),
-                "length": length,
-                "fell": length < env.spec.max_episode_steps,
-                "normalized_score": (total - random_return) / (expert_return - random_return),
+                "interactions": int(path.stem),
+                "normalized_score": float(scores.mean()),
+                "lowest": float(scores.min()),
+                "fell": sum(row["fell"] for row in played),
+                "episodes": episodes,
             }
         )
     return rows
@@ -1283,7 +1338,11 @@ def run_command(argv) -> int:
         "evaluate", help="a run's saved policy over many episodes: returns and falls, a table"
     )
     evaluation.add_argument("run_dir")
-    evaluation.add_argument("--policy", choices=list(POLICY_FILES), default="final")
+    evaluation.add_argument(
+        "--policy",
+        default="final",
+        help="final, best, checkpoint, a snapshot's interactions, or snapshots (each in turn)",
+    )
     evaluation.add_argument("--episodes", type=positive_int, default=20)
     evaluation.add_argument("--seed", type=int, default=3_000_000, help="reset seed of the first")
     noise = sub.add_parser(
@@ -1297,6 +1356,9 @@ def run_command(argv) -> int:
 
     if args.command == "probe":
         print_rows(probe_critic(args.run_dir, args.episodes, args.steps, args.seed))
+        return 0
+    if args.command == "evaluate" and args.policy == "snapshots":
+        print_rows(evaluate_snapshots(args.run_dir, args.episodes, args.seed))
         return 0
     if args.command == "evaluate":
         rows = evaluate_policy(args.run_dir, args.policy, args.episodes, args.seed)

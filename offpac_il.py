@@ -1012,6 +1012,13 @@ class Progress:
     rows: list[dict] = field(default_factory=list)
 
 
+SNAPSHOTS = "policies"  # policy_state() at each evaluation, named by its interactions
+
+
+def snapshot_path(run_dir: Path, interactions: int) -> Path:
+    return Path(run_dir) / SNAPSHOTS / f"{interactions:07d}.npz"
+
+
 def rounded(value):
     """Counts as they are, measurements to 5 significant digits."""
     return value if isinstance(value, int) else float(f"{value:.5g}")
@@ -1153,6 +1160,10 @@ def train(config: Config, resume: bool = False) -> Progress:
             }
             progress.rows.append(row)
             recent_returns.clear()
+            # Every evaluated policy is kept (tens of kB each), so that one evaluation's
+            # five episodes can be checked later on many more (experiments.py evaluate).
+            (run_dir / SNAPSHOTS).mkdir(exist_ok=True)
+            nets.save_arrays(snapshot_path(run_dir, progress.interactions), learner.policy_state())
             if returns.mean() > progress.best_eval_return:
                 progress.best_eval_return = float(returns.mean())
                 nets.save_arrays(run_dir / "policy_best.npz", learner.policy_state())

@@ -514,7 +514,9 @@ def test_hold_command_prints_one_row_per_run(tmp_path, capsys):
         (["figures", "sideways"], "invalid choice"),
         (["evaluate", "{absent}"], "config.json missing"),
         (["evaluate", "{run}"], "policy_final.npz does not exist"),
-        (["evaluate", "{run}", "--policy", "worst"], "invalid choice"),
+        (["evaluate", "{run}", "--policy", "worst"], "--policy worst"),
+        (["evaluate", "{run}", "--policy", "5000"], "0005000.npz does not exist"),
+        (["evaluate", "{run}", "--policy", "snapshots"], "holds no policy snapshots"),
     ],
 )
 def test_bad_command_lines_end_in_one_line_and_status_2(tmp_path, capsys, argv, says):

@@ -986,6 +986,17 @@ def test_evaluate_plays_the_saved_policy_from_new_starts(tmp_path, hopper_demos)
         assert row["normalized_score"] == pytest.approx(
             (total - random_return) / (expert_return - random_return)
         )
+    # One snapshot per evaluation, the last one the final policy.
+    rows_of_run = read_progress(tmp_path / "run")
+    snapshots = sorted((tmp_path / "run" / offpac_il.SNAPSHOTS).glob("*.npz"))
+    assert [int(p.stem) for p in snapshots] == [int(r["interactions"]) for r in rows_of_run]
+    last = experiments.evaluate_policy(tmp_path / "run", snapshots[-1].stem, 3, seed=7)
+    assert last == rows
+    table = experiments.evaluate_snapshots(tmp_path / "run", episodes=3, seed=7)
+    assert [row["interactions"] for row in table] == [int(p.stem) for p in snapshots]
+    scores = [row["normalized_score"] for row in rows]
+    assert table[-1]["normalized_score"] == pytest.approx(np.mean(scores))
+    assert (table[-1]["lowest"], table[-1]["fell"]) == (min(scores), sum(r["fell"] for r in rows))
     # A different policy in the file plays differently.
     arrays = nets.load_arrays(tmp_path / "run" / "policy_final.npz")
     nets.save_arrays(tmp_path / "run" / "policy_final.npz", {k: 2 * v for k, v in arrays.items()})
