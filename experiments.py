@@ -1217,7 +1217,7 @@ def policy_player(run_dir):
                     "seed": seed + episode,
                     "return": round(total, 1),
                     "length": length,
-                    "fell": length < env.spec.max_episode_steps,
+                    "fell": offpac_il.fell(env, length),
                     "normalized_score": (total - random_return) / (expert_return - random_return),
                 }
             )

@@ -917,9 +917,15 @@ def evaluate(env, learner: Learner, spaces: Spaces, config: Config, round_index:
         run_episode(env, learner, spaces, rng, seed=10**6 + config.seed * 1000 + i)
         for i in range(config.eval_episodes)
     ]
-    time_limit = env.spec.max_episode_steps if env.spec is not None else None
-    falls = sum(length < time_limit for _, length in episodes) if time_limit else 0
+    falls = sum(fell(env, length) for _, length in episodes)
     return np.array([episode_return for episode_return, _ in episodes]), falls
+
+
+def fell(env, length: int) -> bool:
+    """Did an episode of `length` steps end by termination, before the time limit?
+    (Without a time limit nothing counts as a fall.)"""
+    time_limit = env.spec.max_episode_steps if env.spec is not None else None
+    return time_limit is not None and length < time_limit
 
 
 def imitation_diagnostics(learner: Learner, expert_buffer: Triplets, rng) -> dict[str, float]:
