@@ -605,11 +605,7 @@ class Run:
                 " or choose another --run-dir"
             )
         env = expert.make_env(config.env)
-        try:
-            random_return, expert_return = expert.reference_returns(config.env)
-        except UserError as missing:  # any Box task can be learned; it just has no score
-            print(f"note: no normalised score ({missing})", flush=True)
-            random_return, expert_return = math.nan, math.nan
+        random_return, expert_return = expert.references_or_nan(config.env)
         if config.demos:
             demo_path = Path(config.demos)
         else:
@@ -648,7 +644,7 @@ class Run:
         self.started = time.perf_counter() - self.progress.wall_seconds
 
     def normalized(self, value: float) -> float:
-        return (value - self.random_return) / (self.expert_return - self.random_return)
+        return expert.normalized_score(value, (self.random_return, self.expert_return))
 
     def evaluation_due(self, counter: str, total: int) -> bool:
         """At 0, at the first boundary past each eval_every, and once at the end.

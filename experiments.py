@@ -1204,7 +1204,7 @@ def policy_player(run_dir):
     config = offpac_il.saved_config({**saved, "run_dir": str(run_dir)})
     env = expert.make_env(config.env)
     spaces, _, learner, _ = offpac_il.prepare(config, env, np.random.default_rng(config.seed))
-    random_return, expert_return = expert.reference_returns(config.env)
+    references = expert.references_or_nan(config.env)
 
     def play(path: Path, episodes: int, seed: int) -> list[dict]:
         learner.load_policy_state(nets.load_arrays(path))
@@ -1218,7 +1218,7 @@ def policy_player(run_dir):
                     "return": round(total, 1),
                     "length": length,
                     "fell": offpac_il.fell(env, length),
-                    "normalized_score": (total - random_return) / (expert_return - random_return),
+                    "normalized_score": expert.normalized_score(total, references),
                 }
             )
         return rows
@@ -1256,20 +1256,23 @@ def evaluate_snapshots(run_dir, episodes: int = 20, seed: int = 3_000_000) -> li
     paths = sorted((Path(run_dir) / offpac_il.SNAPSHOTS).glob("*.npz"))
     if not paths:
         raise UserError(f"{run_dir} holds no policy snapshots")
-    play, rows = policy_player(run_dir), []
-    for path in paths:
-        played = play(path, episodes, seed)
-        scores = np.array([row["normalized_score"] for row in played])
-        rows.append(
-            {
-                "interactions": int(path.stem),
-                "normalized_score": float(scores.mean()),
-                "lowest": float(scores.min()),
-                "fell": sum(row["fell"] for row in played),
-                "episodes": episodes,
-            }
-        )
-    return rows
+    play = policy_player(run_dir)
+    return [
+        {"interactions": int(path.stem), **played_summary(play(path, episodes, seed))}
+        for path in paths
+    ]
+
+
+def played_summary(rows: list[dict]) -> dict:
+    """Mean, std and lowest normalised score of played episodes, and how many fell."""
+    scores = np.array([row["normalized_score"] for row in rows])
+    return {
+        "normalized_score": float(scores.mean()),
+        "std": float(scores.std()),
+        "lowest": float(scores.min()),
+        "fell": sum(row["fell"] for row in rows),
+        "episodes": len(rows),
+    }
 
 
 def print_rows(rows: list[dict]) -> None:
@@ -1363,11 +1366,10 @@ def run_command(argv) -> int:
     if args.command == "evaluate":
         rows = evaluate_policy(args.run_dir, args.policy, args.episodes, args.seed)
         print_rows(rows)
-        scores = np.array([row["normalized_score"] for row in rows])
-        falls = sum(row["fell"] for row in rows)
+        summary = played_summary(rows)
         print(
-            f"normalised score {scores.mean():.3f} ± {scores.std():.3f};"
-            f" {falls} of {len(rows)} episodes fell"
+            f"normalised score {summary['normalized_score']:.3f} ± {summary['std']:.3f};"
+            f" {summary['fell']} of {summary['episodes']} episodes fell"
         )
         return 0
     if args.command == "gradient-noise":

@@ -713,6 +713,22 @@ def reference_returns(env_id: str, table_path: Path = TABLE_PATH) -> tuple[float
     return float(row["random_mean"]), float(row["expert_mean"])
 
 
+def references_or_nan(env_id: str) -> tuple[float, float]:
+    """reference_returns, or (NaN, NaN) with a note: any Box task can be learned, a task
+    without an expert just has no normalised score."""
+    try:
+        return reference_returns(env_id)
+    except UserError as missing:
+        print(f"note: no normalised score ({missing})", flush=True)
+        return math.nan, math.nan
+
+
+def normalized_score(value: float, references: tuple[float, float]) -> float:
+    """The paper's normalised score (R - R_random) / (R_expert - R_random)."""
+    random_return, expert_return = references
+    return (value - random_return) / (expert_return - random_return)
+
+
 # ---------------------------------------------------------------------------------------------
 # ARS V2-t trainer (Mania, Guy & Recht 2018, Algorithm 2)
 # ---------------------------------------------------------------------------------------------

@@ -1111,11 +1111,7 @@ def train(config: Config, resume: bool = False) -> Progress:
             " or choose another --run-dir"
         )
     env, eval_env = expert.make_env(config.env), expert.make_env(config.env)
-    try:
-        random_return, expert_return = expert.reference_returns(config.env)
-    except UserError as missing:  # any Box task can be learned; it just has no score
-        print(f"note: no normalised score ({missing})", flush=True)
-        random_return, expert_return = math.nan, math.nan
+    references = expert.references_or_nan(config.env)
     rng = np.random.default_rng(config.seed)  # the run's one Generator, passed explicitly
     spaces, expert_buffer, learner, replay = prepare(config, env, rng)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -1127,9 +1123,6 @@ def train(config: Config, resume: bool = False) -> Progress:
         nets.write_text(
             run_dir / "config.json", json.dumps(dataclasses.asdict(config), indent=2) + "\n"
         )
-
-    def normalized(value: float) -> float:
-        return (value - random_return) / (expert_return - random_return)
 
     started = time.perf_counter() - progress.wall_seconds
     last_checkpoint = last_log = time.perf_counter()
@@ -1156,7 +1149,9 @@ def train(config: Config, resume: bool = False) -> Progress:
                 "episodes": progress.episodes,
                 "eval_return_mean": round(float(returns.mean()), 2),
                 "eval_return_std": round(float(returns.std()), 2),
-                "normalized_score": round(normalized(float(returns.mean())), 4),
+                "normalized_score": round(
+                    expert.normalized_score(float(returns.mean()), references), 4
+                ),
                 "train_return": round(float(np.mean(recent_returns)), 2) if recent_returns else "",
                 **{
                     k: rounded(value[k]) if k in value else ""
@@ -1168,11 +1163,12 @@ def train(config: Config, resume: bool = False) -> Progress:
             recent_returns.clear()
             # Every evaluated policy is kept (tens of kB each), so that one evaluation's
             # five episodes can be checked later on many more (experiments.py evaluate).
+            policy = learner.policy_state()
             (run_dir / SNAPSHOTS).mkdir(exist_ok=True)
-            nets.save_arrays(snapshot_path(run_dir, progress.interactions), learner.policy_state())
+            nets.save_arrays(snapshot_path(run_dir, progress.interactions), policy)
             if returns.mean() > progress.best_eval_return:
                 progress.best_eval_return = float(returns.mean())
-                nets.save_arrays(run_dir / "policy_best.npz", learner.policy_state())
+                nets.save_arrays(run_dir / "policy_best.npz", policy)
             print(
                 f"eval  {progress.interactions:>8d} steps  return {returns.mean():8.1f}"
                 f" ± {returns.std():6.1f}  score {row['normalized_score']:6.3f}"
@@ -1220,9 +1216,10 @@ def train(config: Config, resume: bool = False) -> Progress:
         if now - last_log >= config.log_every:
             rate = progress.interactions / max(progress.wall_seconds, 1e-9)
             eta = (config.total_steps - progress.interactions) / max(rate, 1e-9)
+            score = expert.normalized_score(episode_return, references)
             print(
                 f"train {progress.interactions:>8d} steps  return {episode_return:8.1f}"
-                f" ({length:4d} steps)  score {normalized(episode_return):6.3f}"
+                f" ({length:4d} steps)  score {score:6.3f}"
                 f"  {length / max(update_seconds, 1e-9):5.1f} updates/s"
                 f"  ETA {eta / 60:6.1f} min",
                 flush=True,
