@@ -651,6 +651,26 @@ def import_minari(
 # ---------------------------------------------------------------------------------------------
 
 
+def numeric_platform() -> dict:
+    """What decides the last bits of a return: library versions and the BLAS kernel in use.
+
+    The returns of the SAC experts (float32 networks) on Ant-v4 change with the kernel that
+    OpenBLAS picks for the CPU (for example 4932 with SkylakeX, 4454 with Haswell over
+    the same 10 seeded episodes) because an episode ends when rounding tips the robot out of
+    its healthy range; OPENBLAS_CORETYPE chooses the kernel.
+    """
+    import mujoco
+    from threadpoolctl import threadpool_info
+
+    blas = [pool for pool in threadpool_info() if pool["user_api"] == "blas"]
+    return dict(
+        numpy=np.__version__,
+        mujoco=mujoco.__version__,
+        gymnasium=gym.__version__,
+        blas_kernel=blas[0].get("architecture", "unknown") if blas else "none",
+    )
+
+
 def measure_table(
     episodes: int = 10, seed: int = 0, tasks=PAPER_TASKS, log: Callable[[str], None] = print
 ) -> dict:
@@ -670,6 +690,7 @@ def measure_table(
             random_std=float(random_returns.std()),
             expert_mean=None,
             expert_std=None,
+            measured_with=numeric_platform(),
         )
         if default_expert_path(env_id).exists():
             expert_returns = evaluate(env_id, load_expert(env_id).act, episodes, seed)

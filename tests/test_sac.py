@@ -523,6 +523,8 @@ def test_sac_expert_file_serves_load_demos_and_table(tmp_path, monkeypatch):
     # table: the expert row is measured with the SAC policy.
     table = expert.measure_table(episodes=2, tasks=(PENDULUM,), log=lambda _: None)
     assert table[PENDULUM]["expert_mean"] == 1000.0
+    # ... and records what its last bits depend on (library versions, BLAS kernel).
+    assert set(table[PENDULUM]["measured_with"]) == {"numpy", "mujoco", "gymnasium", "blas_kernel"}
 
 
 def test_expert_files_of_both_kinds_and_broken_ones(tmp_path):
