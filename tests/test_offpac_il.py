@@ -283,6 +283,48 @@ def test_exploration_noise_is_executed_and_stored():
     assert np.abs(stored).max() == 1.0  # sigma = 0.5 pushes some components to the bound
 
 
+def test_critic_input_noise_perturbs_only_the_critic_steps_inputs(monkeypatch):
+    """--critic-input-noise sigma: the critic's loss sees (s + sigma eps, a + sigma eps'),
+    drawn after the targets from the run's Generator; the targets see the clean triplets;
+    with sigma = 0 nothing is drawn, so runs made before the flag replay unchanged."""
+    seen = []
+    loss = offpac_il.critic_loss_and_grads
+    monkeypatch.setattr(
+        offpac_il,
+        "critic_loss_and_grads",
+        lambda ln, batch, *a: seen.append(batch) or loss(ln, batch, *a),
+    )
+    targets = offpac_il.critic_targets
+    monkeypatch.setattr(
+        offpac_il,
+        "critic_targets",
+        lambda ln, batch, *a: seen.append(batch) or targets(ln, batch, *a),
+    )
+    rng = np.random.default_rng(0)
+    expert_rows, replay_rows = random_triplets(rng, 3), random_triplets(rng, 3)
+    clean = np.concatenate([expert_rows.states, replay_rows.states])
+    clean_actions = np.concatenate([expert_rows.actions, replay_rows.actions])
+    for sigma in (0.0, 0.5):
+        learner, config, _ = small_learner(2, critic_input_noise=sigma, target_samples=2)
+        seen[:] = []
+        draws = np.random.default_rng(7)
+        offpac_il.critic_step(learner, expert_rows, replay_rows, config, 1e-3, draws)
+        for_targets, for_loss = seen
+        np.testing.assert_array_equal(for_targets.states, clean)
+        expected = np.random.default_rng(7)
+        expected.standard_normal((6 * 2, learner.noise_dim), np.float32)  # the targets' z
+        if sigma:
+            noise_s = expected.standard_normal(clean.shape, np.float32)
+            noise_a = expected.standard_normal(clean_actions.shape, np.float32)
+            np.testing.assert_allclose(for_loss.states, clean + sigma * noise_s, rtol=1e-6)
+            np.testing.assert_allclose(for_loss.actions, clean_actions + sigma * noise_a, rtol=1e-6)
+        else:
+            assert for_loss is for_targets
+        np.testing.assert_array_equal(for_loss.next_states, for_targets.next_states)
+        # Whatever the critic step drew, the generator stands where `expected` does.
+        assert draws.random() == expected.random()
+
+
 @pytest.mark.parametrize("termination", offpac_il.TERMINATIONS)
 def test_critic_targets(termination):
     learner, config, rng = small_learner(3, termination=termination, target_samples=4)
