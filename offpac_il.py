@@ -117,6 +117,8 @@ class Config:
     """Std of Gaussian noise added to the action in training episodes (paper: 0)."""
     critic_input_noise: float = 0.0
     """Std of Gaussian noise added to the critic step's (s, a) inputs (paper: 0)."""
+    policy_average: float = 0.0
+    """Rate of a Polyak average of PN's weights, also evaluated (0: none; paper: none)."""
 
     # The paper's ablations (Sec. 5.3, Figure 4), switches of this one learner; the
     # defaults are Ours. What each switch changes, and why: the comment above `Learner`.
@@ -188,6 +190,8 @@ def check_config(config: Config) -> None:
         raise UserError("--critic-reg and --critic-grad-penalty must be at least 0")
     if not 0.0 <= config.policy_expert_states <= 1.0:
         raise UserError("--policy-expert-states must lie in [0, 1]")
+    if not 0.0 <= config.policy_average <= 1.0:
+        raise UserError("--policy-average must lie in [0, 1]")
     for name in ("exploration_noise", "critic_input_noise"):
         if not 0.0 <= getattr(config, name) < math.inf:
             raise UserError(f"--{name.replace('_', '-')} must be a finite number, at least 0")
@@ -366,6 +370,8 @@ class Learner:
     with z_0 = `fixed_noise`, whatever noise the caller draws.
     reward, reward_optimizer: r_omega = sigmoid(RN([s, a])), QN's size, and its RMSProp,
     when a reward is learned (reward_learning != "none"); else None.
+    average_policy: PN's Polyak-averaged weights (--policy-average), else None. It never
+    acts in training episodes nor enters a gradient: it is only evaluated beside PN.
     """
 
     policy: nets.MLP
@@ -378,6 +384,7 @@ class Learner:
     fixed_noise: np.ndarray | None = None  # (dim z,): Ours+DP's z_0
     reward: nets.MLP | None = None
     reward_optimizer: nets.RMSProp | None = None
+    average_policy: nets.MLP | None = None
 
     @classmethod
     def create(cls, state_dim, noise_dim, action_dim, config: Config, rng, dtype=np.float32):
@@ -415,6 +422,8 @@ class Learner:
                 [state_dim + action_dim, *config.critic_hidden, 1], "sigmoid", rng, dtype
             )
             learner.reward_optimizer = nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps)
+        if config.policy_average > 0:
+            learner.average_policy = policy.copy()
         if config.policy_type == "deterministic":
             # Ours+DP, "a deterministic policy with fixed input noises" (Sec. 5.3): we
             # read it as Ours' PN with P_z replaced by a point mass at one draw
@@ -492,7 +501,13 @@ class Learner:
         if self.reward is not None:
             arrays.update(self.reward.state("reward"))
             arrays.update(self.reward_optimizer.state("reward_rmsprop"))
+        if self.average_policy is not None:
+            arrays.update(self.average_policy.state("average_policy"))
         return arrays
+
+    def averaged(self) -> Learner:
+        """This learner acting with the averaged PN (shares every other part)."""
+        return dataclasses.replace(self, policy=self.average_policy)
 
     def load_policy_state(self, arrays) -> None:
         """The inverse of policy_state (a policy file, or a checkpoint's policy)."""
@@ -509,6 +524,8 @@ class Learner:
         if self.reward is not None:
             self.reward.load_state(arrays, "reward")
             self.reward_optimizer.load_state(arrays, "reward_rmsprop")
+        if self.average_policy is not None:
+            self.average_policy.load_state(arrays, "average_policy")
 
 
 # Rows per chunk of the big passes (policy step, critic targets). Measured for the
@@ -856,6 +873,11 @@ def update(
     )
     states = policy_states(expert_buffer, replay, config, rng)
     stats.update(policy_step(learner, states, config, policy_lr, rng))
+    if learner.average_policy is not None:
+        # Not in the paper: theta_avg <- rate theta + (1 - rate) theta_avg, like the
+        # target critic's update. The relapses of the README are spells of a worse PN a
+        # few thousand updates long; an average over a longer horizon may ride them out.
+        nets.soft_update(learner.average_policy, learner.policy, config.policy_average)
     return stats
 
 
@@ -1015,6 +1037,8 @@ PROGRESS_FIELDS = (
 # the columns above and nothing else).
 REWARD_FIELDS = ("reward_loss", "r_expert", "r_replay")  # reward learning (Ours+IRL)
 GAUSSIAN_FIELDS = ("policy_std",)  # the Gaussian policy (Ours+GP)
+# The averaged PN's evaluation, on the same episode seeds as PN's (--policy-average).
+AVERAGE_FIELDS = ("average_return_mean", "average_score", "average_falls")
 
 
 def progress_fields(config: Config) -> tuple[str, ...]:
@@ -1023,6 +1047,7 @@ def progress_fields(config: Config) -> tuple[str, ...]:
         PROGRESS_FIELDS
         + (REWARD_FIELDS if config.reward_learning != "none" else ())
         + (GAUSSIAN_FIELDS if config.policy_type == "gaussian" else ())
+        + (AVERAGE_FIELDS if config.policy_average > 0 else ())
     )
 
 
@@ -1163,6 +1188,16 @@ def train(config: Config, resume: bool = False) -> Progress:
                 expert_buffer,
                 np.random.default_rng([config.seed, 2, progress.eval_rounds]),
             ) | {"eval_falls": falls}
+            if learner.average_policy is not None:
+                average_returns, average_falls = evaluate(
+                    eval_env, learner.averaged(), spaces, config, progress.eval_rounds
+                )
+                average_return = float(average_returns.mean())
+                diagnostics |= {
+                    "average_return_mean": round(average_return, 2),
+                    "average_score": expert.normalized_score(average_return, references),
+                    "average_falls": average_falls,
+                }
             progress.eval_rounds += 1
             progress.wall_seconds = time.perf_counter() - started
             row = {

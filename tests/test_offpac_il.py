@@ -446,6 +446,51 @@ def test_resume_reproduces_an_uninterrupted_run(tmp_path, hopper_demos, monkeypa
     assert read_progress(interrupted) == whole
 
 
+def test_policy_average_is_evaluated_beside_pn_and_changes_nothing_else(
+    tmp_path, hopper_demos, monkeypatch
+):
+    """--policy-average r: after each update theta_avg <- r theta + (1 - r) theta_avg;
+    training (episodes, updates, PN's evaluation) is the run without the flag, row for
+    row; the averaged PN is evaluated on the same episode seeds and resumes exactly."""
+    plain = tmp_path / "plain"
+    offpac_il.train(tiny_config(plain, hopper_demos))
+    averaged = tmp_path / "averaged"
+    offpac_il.train(tiny_config(averaged, hopper_demos, extra=["--policy-average", "0.05"]))
+    rows, plain_rows = read_progress(averaged), read_progress(plain)
+    assert [
+        {k: v for k, v in row.items() if k not in offpac_il.AVERAGE_FIELDS}
+        for row in without_wall_time(rows)
+    ] == without_wall_time(plain_rows)
+    # At the start the average is PN itself: the same episodes, the same return.
+    assert rows[0]["average_return_mean"] == rows[0]["eval_return_mean"]
+    assert rows[-1]["average_return_mean"] != rows[-1]["eval_return_mean"]
+    assert {int(r["average_falls"]) for r in rows} <= set(range(2))
+
+    # The update rule, on one update.
+    learner, config, rng = small_learner(4, policy_average=0.25, batch_size=3)
+    before = {k: v.copy() for k, v in learner.average_policy.params.items()}
+    replay = offpac_il.ReplayBuffer(10, 3, 2)
+    for row in range(5):
+        replay.add(*(x[row] for x in dataclasses.astuple(random_triplets(rng, 5))))
+    offpac_il.update(learner, random_triplets(rng, 4), replay, config, 0, rng)
+    for name, value in learner.average_policy.params.items():
+        np.testing.assert_allclose(value, 0.75 * before[name] + 0.25 * learner.policy.params[name])
+
+    # A killed run resumes to the same rows, averaged PN included.
+    interrupted = tmp_path / "interrupted"
+    flags = ["--policy-average", "0.05"]
+    with monkeypatch.context() as patch:
+        patch.setattr(offpac_il, "run_episode", interrupted_after(3))
+        with pytest.raises(KeyboardInterrupt):
+            offpac_il.train(tiny_config(interrupted, hopper_demos, extra=flags))
+    offpac_il.train(tiny_config(interrupted, hopper_demos, extra=flags), resume=True)
+    assert without_wall_time(read_progress(interrupted)) == without_wall_time(rows)
+
+
+def without_wall_time(rows: list[dict]) -> list[dict]:
+    return [{k: v for k, v in row.items() if k != "wall_seconds"} for row in rows]
+
+
 def test_kill_and_resume_from_the_command_line(tmp_path, hopper_demos):
     run_dir = tmp_path / "run"
     process = subprocess.Popen(
