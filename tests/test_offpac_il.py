@@ -465,6 +465,12 @@ def test_policy_average_is_evaluated_beside_pn_and_changes_nothing_else(
     assert rows[0]["average_return_mean"] == rows[0]["eval_return_mean"]
     assert rows[-1]["average_return_mean"] != rows[-1]["eval_return_mean"]
     assert {int(r["average_falls"]) for r in rows} <= set(range(2))
+    saved = nets.load_arrays(averaged / "policy_average.npz")
+    with np.load(averaged / "checkpoint.npz") as checkpoint:
+        for name, value in saved.items():
+            np.testing.assert_array_equal(
+                value, checkpoint[name.replace("policy", "average_policy")]
+            )
 
     # The update rule, on one update.
     learner, config, rng = small_learner(4, policy_average=0.25, batch_size=3)
