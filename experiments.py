@@ -37,7 +37,7 @@ Command line:
     python experiments.py curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination] [--x-max N]
     python experiments.py hold RUN_DIR [RUN_DIR ...] [--since N] [--until N]
     python experiments.py probe RUN_DIR [--episodes 3] [--steps 300]
-    python experiments.py evaluate RUN_DIR [--policy final|best|checkpoint|N|snapshots]
+    python experiments.py evaluate RUN_DIR [--policy final|best|checkpoint|average|N|snapshots]
                                            [--episodes 20]
     python experiments.py gradient-noise RUN_DIR [--samples 8 128] [--draws 30]
 """
@@ -1172,12 +1172,14 @@ POLICY_FILES = {
     "final": "policy_final.npz",
     "best": "policy_best.npz",
     "checkpoint": "checkpoint.npz",
+    "average": "policy_average.npz",  # the averaged PN (--policy-average)
 }
 
 
 def policy_file(run_dir, policy: str) -> Path:
-    """final, best, checkpoint (the policy in checkpoint.npz), or a number: the policy
-    snapshot taken at the evaluation after that many interactions."""
+    """final, best, checkpoint (the policy in checkpoint.npz), average (the averaged PN of
+    a run with --policy-average), or a number: the policy snapshot taken at the evaluation
+    after that many interactions."""
     import offpac_il
     from expert import UserError
 
@@ -1186,7 +1188,8 @@ def policy_file(run_dir, policy: str) -> Path:
     if policy.isdigit():
         return offpac_il.snapshot_path(run_dir, int(policy))
     raise UserError(
-        f"--policy {policy}: not final, best, checkpoint, snapshots or a snapshot's interactions"
+        f"--policy {policy}: not final, best, checkpoint, average, snapshots or a snapshot's "
+        "interactions"
     )
 
 
@@ -1344,7 +1347,8 @@ def run_command(argv) -> int:
     evaluation.add_argument(
         "--policy",
         default="final",
-        help="final, best, checkpoint, a snapshot's interactions, or snapshots (each in turn)",
+        help="final, best, checkpoint, average, a snapshot's interactions, or snapshots "
+        "(each in turn)",
     )
     evaluation.add_argument("--episodes", type=positive_int, default=20)
     evaluation.add_argument("--seed", type=int, default=3_000_000, help="reset seed of the first")

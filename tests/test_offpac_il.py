@@ -471,6 +471,9 @@ def test_policy_average_is_evaluated_beside_pn_and_changes_nothing_else(
             np.testing.assert_array_equal(
                 value, checkpoint[name.replace("policy", "average_policy")]
             )
+    # ... and `experiments.py evaluate --policy average` plays it.
+    played = experiments.evaluate_policy(averaged, "average", episodes=2, seed=7)
+    assert played != experiments.evaluate_policy(averaged, "final", episodes=2, seed=7)
 
     # The update rule, on one update.
     learner, config, rng = small_learner(4, policy_average=0.25, batch_size=3)
