@@ -959,9 +959,10 @@ def hold_table(
     floor: float = 0.8,
     since: float = 40_000,
     until: float = np.inf,
+    averaged: bool = False,
 ) -> str:
     """`hold_stats` of each run as a Markdown table (the README's Hopper and HalfCheetah
-    tables)."""
+    tables); with `averaged`, of the averaged PN's evaluations (--policy-average runs)."""
     lines = [
         f"| Run | first >= {reach} | evaluations after it < {floor} | lowest after it "
         f"| episodes after it that fell "
@@ -971,7 +972,17 @@ def hold_table(
     for run_dir in run_dirs:
         has_config = (Path(run_dir) / "config.json").exists()
         episodes = read_config(run_dir).get("eval_episodes", 0) if has_config else 0
-        h = hold_stats(read_progress(run_dir), reach, floor, since, until, episodes)
+        progress = read_progress(run_dir)
+        if averaged:
+            if "average_score" not in progress:
+                from expert import UserError
+
+                raise UserError(f"{run_dir}: no averaged PN's evaluations (--policy-average)")
+            progress |= {
+                "normalized_score": progress["average_score"],
+                "eval_falls": progress["average_falls"],
+            }
+        h = hold_stats(progress, reach, floor, since, until, episodes)
         first = "never" if np.isnan(h["first_reach"]) else f"{h['first_reach'] / 1000:.1f} k"
         fell = f"{h['falls_after']} of {h['fall_episodes']}" if h["fall_episodes"] else "-"
         lines.append(
@@ -1335,6 +1346,9 @@ def run_command(argv) -> int:
     hold.add_argument("--floor", type=float, default=0.8, help="score it must stay above")
     hold.add_argument("--since", type=float, default=40_000, help="interactions of the tail")
     hold.add_argument("--until", type=float, default=np.inf, help="ignore evaluations after")
+    hold.add_argument(
+        "--averaged", action="store_true", help="the averaged PN's evaluations (--policy-average)"
+    )
     probe = sub.add_parser("probe", help="the critic at the learner's own states, a table")
     probe.add_argument("run_dir")
     probe.add_argument("--episodes", type=positive_int, default=3)
@@ -1382,7 +1396,9 @@ def run_command(argv) -> int:
         print_rows(gradient_noise(args.run_dir, args.samples, args.draws, args.seed))
         return 0
     if args.command == "hold":
-        print(hold_table(args.run_dirs, args.reach, args.floor, args.since, args.until))
+        print(
+            hold_table(args.run_dirs, args.reach, args.floor, args.since, args.until, args.averaged)
+        )
         return 0
 
     if args.command == "curves":

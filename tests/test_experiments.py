@@ -499,6 +499,18 @@ def test_hold_command_prints_one_row_per_run(tmp_path, capsys):
     rows = capsys.readouterr().out.strip().splitlines()[-2:]
     tail = "| 20.0 k | 1 of 2 | 0.70 | {} | 1 of 2 / 0.83 / 0.70 | 0.97 (60 k) |"
     assert rows == [f"| {old} {tail.format('-')}", f"| {new} {tail.format('1 of 10')}"]
+    # --averaged reads the averaged PN's columns instead, and refuses a run without them.
+    (new / "progress.csv").write_text(
+        "interactions,normalized_score,eval_falls,average_score,average_falls\n"
+        "0,0.0,5,0.0,5\n20000,0.95,0,0.5,3\n40000,0.7,1,0.92,0\n60000,0.97,0,0.98,0\n"
+    )
+    assert experiments.main(["hold", str(new), "--averaged"]) == 0
+    row = capsys.readouterr().out.strip().splitlines()[-1]
+    assert (
+        row == f"| {new} | 40.0 k | 0 of 1 | 0.98 | 0 of 5 | 2 of 2 / 0.95 / 0.92 | 0.98 (60 k) |"
+    )
+    assert experiments.main(["hold", str(old), "--averaged"]) == 2
+    assert "no averaged PN" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
