@@ -872,7 +872,9 @@ def gail_iteration(
             config.clip_range,
             config.entropy_coef,
         )
-        if config.target_kl > 0.0 and stats["approx_kl"] > 1.5 * config.target_kl:
+        # The first minibatch always steps: the policy is pi_old there, and its KL of 0
+        # comes out as rounding noise (up to ~1e-9), which a tiny target_kl would obey.
+        if ppo_stats and config.target_kl > 0.0 and stats["approx_kl"] > 1.5 * config.target_kl:
             break
         grad_norm = clip_global_norm(grads, config.max_grad_norm)
         agent.policy_optimizer.step(agent.policy.params, grads, config.policy_lr)

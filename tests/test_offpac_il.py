@@ -453,7 +453,7 @@ def test_policy_average_is_evaluated_beside_pn_and_changes_nothing_else(
     training (episodes, updates, PN's evaluation) is the run without the flag, row for
     row; the averaged PN is evaluated on the same episode seeds and resumes exactly."""
     plain = tmp_path / "plain"
-    offpac_il.train(tiny_config(plain, hopper_demos))
+    offpac_il.train(tiny_config(plain, hopper_demos, extra=["--policy-average", "0"]))
     averaged = tmp_path / "averaged"
     offpac_il.train(tiny_config(averaged, hopper_demos, extra=["--policy-average", "0.05"]))
     rows, plain_rows = read_progress(averaged), read_progress(plain)
@@ -1007,10 +1007,11 @@ def test_a_config_saved_before_a_setting_existed_keeps_the_papers_behaviour():
     """config.json of an old run lacks policy_expert_states: that run drew its policy
     states from the replay only, and must resume (and be labelled) that way."""
     saved = dataclasses.asdict(offpac_il.Config(policy_lr=1e-4, critic_lr=1e-3))
-    del saved["policy_expert_states"]
+    del saved["policy_expert_states"], saved["policy_average"]
     saved["policy_hidden"] = list(saved["policy_hidden"])  # as JSON gives it back
     config = offpac_il.saved_config(saved)
     assert config.policy_expert_states == 0.0
+    assert config.policy_average == 0.0  # and its checkpoint holds no averaged PN
     assert config.policy_hidden == (100, 100)
     saved["policy_expert_states"] = 0.5
     assert offpac_il.saved_config(saved).policy_expert_states == 0.5
