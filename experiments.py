@@ -616,14 +616,29 @@ def final_row(run: Run) -> int:
     return -1
 
 
+def output_scores(run: Run) -> np.ndarray:
+    """The normalised score, at each evaluation, of the policy the run hands over: the
+    averaged policy's (`average_score`, policy_average.npz) where the run keeps one, as
+    offpac_il.py does by default, else the policy's own (`normalized_score`)."""
+    p = run.progress
+    averaged = p.get("average_score")
+    if averaged is not None and not np.all(np.isnan(averaged)):
+        return averaged
+    return p.get("normalized_score", np.array([]))
+
+
 def summarize(runs: Iterable[Run]) -> list[dict]:
-    """One row per run: its labels, how far it got, and its final and best normalised
-    score (final: the evaluation of the final policy, `final_row`; best: the highest)."""
+    """One row per run: its labels, how far it got, and the normalised score of the
+    policy it hands over (`output_scores`): final, the evaluation of the final policy
+    (`final_row`), and best, the highest; policy_final_score is the last evaluation of
+    the policy itself (PN), which differs from final_score where a run keeps an
+    averaged policy."""
     rows = []
     for run in runs:
         p = run.progress
-        scores = p.get("normalized_score", np.array([]))
+        scores = output_scores(run)
         has_score = scores.size and not np.all(np.isnan(scores))
+        own = p.get("normalized_score", np.array([]))
         rows.append(
             {
                 **{k: run.labels.get(k, "") for k in LABEL_KEYS},
@@ -633,6 +648,7 @@ def summarize(runs: Iterable[Run]) -> list[dict]:
                 "evaluations": len(scores),
                 "final_score": float(scores[final_row(run)]) if has_score else np.nan,
                 "best_score": float(np.nanmax(scores)) if has_score else np.nan,
+                "policy_final_score": float(own[final_row(run)]) if own.size else np.nan,
                 "run_dir": str(run.run_dir),
             }
         )
@@ -808,18 +824,19 @@ def _color(method: str) -> str:
 
 
 def _curve_panel(ax, runs: Sequence[Run], methods: Sequence[str], x: str, csv_rows, panel: str):
-    """One line per method: mean score over seeds vs x, band min-max. A method whose runs
-    do not move along x (BC: no interactions) is drawn as a level line at its mean
-    final score. Wall time is shown in hours past two hours; x is logarithmic when the
-    methods' budgets differ a hundredfold (GAIL's millions of interactions)."""
+    """One line per method: mean score (`output_scores`) over seeds vs x, band min-max.
+    A method whose runs do not move along x (BC: no interactions) is drawn as a level
+    line at its mean final score. Wall time is shown in hours past two hours; x is
+    logarithmic when the methods' budgets differ a hundredfold (GAIL's millions of
+    interactions)."""
     bands, levels = {}, {}
     for method in methods:
         chosen = [r for r in runs if r.labels.get("method") == method and r.progress]
-        group = [r.progress for r in chosen]
+        group = [{**r.progress, "output_score": output_scores(r)} for r in chosen]
         if group:
-            band = interpolated_band(group, x, "normalized_score")
+            band = interpolated_band(group, x, "output_score")
             if band is None:
-                finals = [r.progress["normalized_score"][final_row(r)] for r in chosen]
+                finals = [output_scores(r)[final_row(r)] for r in chosen]
                 levels[method] = (np.mean(finals), len(group))
             else:
                 bands[method] = band

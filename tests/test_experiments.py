@@ -392,6 +392,23 @@ def test_bc_final_score_is_the_early_stopped_policys(tmp_path):
     assert row["final_score"] == 0.4
 
 
+def test_a_runs_score_is_its_averaged_policys_where_it_keeps_one(tmp_path):
+    """summarize and the curves score the policy a run hands over: the averaged policy
+    where progress.csv has its column filled, the policy itself otherwise."""
+    run_dir = tmp_path / "ours"
+    run_dir.mkdir()
+    header = "interactions,wall_seconds,updates,normalized_score,average_score\n"
+    (run_dir / "progress.csv").write_text(header + "0,1,0,0.0,0.1\n500,2,500,0.4,0.9\n")
+    (run_dir / "policy_final.npz").write_bytes(b"")
+    run = experiments.load_run(run_dir)
+    [row] = experiments.summarize([run])
+    assert (row["final_score"], row["best_score"], row["policy_final_score"]) == (0.9, 0.9, 0.4)
+    np.testing.assert_array_equal(experiments.output_scores(run), [0.1, 0.9])
+    (run_dir / "progress.csv").write_text(header + "0,1,0,0.0,\n500,2,500,0.4,\n")
+    [row] = experiments.summarize([experiments.load_run(run_dir)])
+    assert (row["final_score"], row["policy_final_score"]) == (0.4, 0.4)
+
+
 def test_a_run_made_by_hand_is_named_by_its_config():
     """load_run names a run without sweep.json from config.json: every method of METHODS
     comes back as itself, and a mix of ablation switches is named by those switches."""
