@@ -393,8 +393,8 @@ def test_bc_final_score_is_the_early_stopped_policys(tmp_path):
 
 
 def test_a_runs_score_is_its_averaged_policys_where_it_keeps_one(tmp_path):
-    """summarize and the curves score the policy a run hands over: the averaged policy
-    where progress.csv has its column filled, the policy itself otherwise."""
+    """output_scores (which the figures plot) and summarize score the policy a run hands
+    over: the averaged policy where progress.csv has its column filled, else PN."""
     run_dir = tmp_path / "ours"
     run_dir.mkdir()
     header = "interactions,wall_seconds,updates,normalized_score,average_score\n"
