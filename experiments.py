@@ -583,16 +583,22 @@ def run_settings(run_dir) -> dict:
 
 
 def load_run(run_dir) -> Run:
-    """Labels from sweep.json, else from config.json (a run made by hand)."""
+    """Labels from sweep.json, else from config.json (a run made by hand). A run is
+    finished when its policy_final.npz exists or, for a run kept without its policies,
+    when its progress.csv reaches the interaction budget of its config.json."""
     run_dir = Path(run_dir)
     labels = {"method": "Ours"}
+    config = {}
     if (run_dir / "config.json").exists():
         config = read_config(run_dir)
         labels.update({k: config[k] for k in LABEL_KEYS if k in config})
         labels["method"] = method_of(config)
     if (run_dir / SPEC_FILE).exists():
         labels.update(json.loads((run_dir / SPEC_FILE).read_text())["labels"])
-    return Run(run_dir, labels, read_progress(run_dir), (run_dir / FINISHED).exists())
+    progress = read_progress(run_dir)
+    budget = config.get("total_steps")
+    reached = bool(progress) and budget is not None and progress["interactions"][-1] >= budget
+    return Run(run_dir, labels, progress, (run_dir / FINISHED).exists() or reached)
 
 
 def load_runs(*roots) -> list[Run]:

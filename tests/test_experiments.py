@@ -409,6 +409,17 @@ def test_a_runs_score_is_its_averaged_policys_where_it_keeps_one(tmp_path):
     assert (row["final_score"], row["policy_final_score"]) == (0.4, 0.4)
 
 
+def test_a_run_kept_without_its_policies_is_finished_once_it_reached_its_budget(tmp_path):
+    run_dir = tmp_path / "gail"
+    run_dir.mkdir()
+    (run_dir / "config.json").write_text(json.dumps({"method": "gail", "total_steps": 1000}))
+    header = "interactions,wall_seconds,updates,normalized_score\n"
+    (run_dir / "progress.csv").write_text(header + "0,1,0,0.0\n999,2,5,0.5\n")
+    assert not experiments.load_run(run_dir).finished
+    (run_dir / "progress.csv").write_text(header + "0,1,0,0.0\n1003,2,5,0.5\n")
+    assert experiments.load_run(run_dir).finished
+
+
 def test_a_run_made_by_hand_is_named_by_its_config():
     """load_run names a run without sweep.json from config.json: every method of METHODS
     comes back as itself, and a mix of ablation switches is named by those switches."""
