@@ -569,3 +569,15 @@ def test_bad_command_lines_end_in_one_line_and_status_2(tmp_path, capsys, argv, 
     assert stop.value.code == 2
     err = capsys.readouterr().err
     assert says in err and err.count("\n") == 1
+
+
+def test_ablation_plan_runs_every_ablation_at_its_budget_seed_by_seed():
+    specs = experiments.ablation_plan("runs/a")
+    assert [s.labels["seed"] for s in specs] == [0] * 6 + [1] * 6 + [2] * 6
+    assert {s.labels["method"] for s in specs} == {"Ours", *experiments.ABLATIONS}
+    for s in specs:
+        assert s.script == "offpac_il.py" and s.labels["env"] == "Hopper-v4"
+        assert (s.labels["sampling"], s.labels["trajectories"]) == ("sparse", 4)
+        assert list(s.args[-4:]) == list(experiments.ABLATION_SWEEP_ARGS)
+    assert len({s.run_dir for s in specs}) == len(specs)
+    assert {s.labels["env"] for s in experiments.ablation_plan("r", "Ant-v4")} == {"Ant-v4"}
