@@ -1086,19 +1086,16 @@ def plot_curves(
 # ----------------------------------------------------------------------------------------
 
 DEFAULT_RUNS = {"quick": "runs/quick", "full": "runs/sweep", "ablations": "runs/ablations"}
-DEFAULT_FIGURES = {"quick": "runs/quick/figures", "full": "figures"}
+DEFAULT_FIGURES = {"quick": "runs/quick/figures", "full": "figures", "ablations": "figures"}
+FIGURES = {"figure2": figure2, "figure3": figure3, "figure4": figure4}
 
 
-def draw_figures(runs_roots, out_dir) -> dict[str, Path | None]:
-    """Figures 2-4 from the runs under runs_roots (one root or several) into out_dir
-    (None: nothing to draw)."""
+def draw_figures(runs_roots, out_dir, names=tuple(FIGURES)) -> dict[str, Path | None]:
+    """The figures `names` (of FIGURES) from the runs under runs_roots (one root or
+    several) into out_dir as NAME.png (None: nothing to draw)."""
     runs = load_runs(*([runs_roots] if isinstance(runs_roots, str | Path) else runs_roots))
     out_dir = resolve(out_dir)
-    return {
-        "figure2": figure2(runs, out_dir / "figure2.png"),
-        "figure3": figure3(runs, out_dir / "figure3.png"),
-        "figure4": figure4(runs, out_dir / "figure4.png"),
-    }
+    return {name: FIGURES[name](runs, out_dir / f"{name}.png") for name in names}
 
 
 class _Recording:
@@ -1373,7 +1370,11 @@ def run_command(argv) -> int:
     )
     run.add_argument("--envs", nargs="+", default=[], help="only these tasks (default: all)")
     figures = sub.add_parser("figures", help="Figures 2-4 (PNG and CSV) from the runs")
-    figures.add_argument("mode", choices=("quick", "full"))
+    figures.add_argument(
+        "mode",
+        choices=("quick", "full", "ablations"),
+        help="ablations: Figure 4 alone, from the runs of `sweep ablations`",
+    )
     figures.add_argument(
         "--runs", nargs="+", help="roots of the run directories, or run directories"
     )
@@ -1453,7 +1454,9 @@ def run_command(argv) -> int:
         return 0
     runs_root = args.runs or DEFAULT_RUNS[args.mode]
     if args.command == "figures":
-        for name, path in draw_figures(runs_root, args.out or DEFAULT_FIGURES[args.mode]).items():
+        names = ("figure4",) if args.mode == "ablations" else tuple(FIGURES)
+        out = args.out or DEFAULT_FIGURES[args.mode]
+        for name, path in draw_figures(runs_root, out, names).items():
             print(f"{name}: {path or 'skipped (no finished runs for it)'}")
         return 0
     if args.mode == "ablations":

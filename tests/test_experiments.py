@@ -299,6 +299,11 @@ def test_figures_write_png_and_csv(tmp_path):
     experiments.main(["curves", str(out / "curves.png"), *map(str, (r.run_dir for r in runs[:2]))])
     assert is_png(out / "curves.png")
 
+    # `figures ablations` draws Figure 4 alone.
+    alone = tmp_path / "alone"
+    experiments.main(["figures", "ablations", "--runs", str(runs_root), "--out", str(alone)])
+    assert sorted(p.name for p in alone.iterdir()) == ["figure4.csv", "figure4.png"]
+
 
 def test_interpolated_band_pools_runs_on_a_common_grid():
     a = {"t": np.array([0.0, 10.0]), "y": np.array([0.0, 1.0])}
