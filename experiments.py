@@ -1356,7 +1356,7 @@ def run_command(argv) -> int:
         "mode",
         choices=("quick", "full", "ablations"),
         help="ablations: Figure 4's runs at 8 noise samples and 60 000 interactions,"
-        " on the first of --envs (default Hopper-v4)",
+        " on the task of --envs (default Hopper-v4)",
     )
     run.add_argument("--runs", help="root of the run directories (default: runs/MODE...)")
     run.add_argument("--workers", type=int, help="runs at a time in the local pool")
@@ -1461,7 +1461,9 @@ def run_command(argv) -> int:
             print(f"{name}: {path or 'skipped (no finished runs for it)'}")
         return 0
     if args.mode == "ablations":
-        chosen = select(ablation_plan(runs_root, *args.envs[:1]), args.methods)
+        if len(args.envs) > 1:
+            raise UserError("sweep ablations runs on one task: give --envs at most one")
+        chosen = select(ablation_plan(runs_root, *args.envs), args.methods)
     else:
         chosen = select(plan(args.mode == "quick", runs_root), args.methods, args.envs)
     specs, skipped = split_runnable(chosen)

@@ -557,6 +557,7 @@ def test_hold_command_prints_one_row_per_run(tmp_path, capsys):
         (["gradient-noise", "{run}", "--draws", "1"], "--draws"),
         (["probe", "{run}", "--steps", "0"], "--steps"),
         (["figures", "sideways"], "invalid choice"),
+        (["sweep", "ablations", "--envs", "Hopper-v4", "Ant-v4"], "on one task"),
         (["evaluate", "{absent}"], "config.json missing"),
         (["evaluate", "{run}"], "policy_final.npz does not exist"),
         (["evaluate", "{run}", "--policy", "worst"], "--policy worst"),
