@@ -1244,7 +1244,7 @@ def policy_file(run_dir, policy: str) -> Path:
 
 
 def policy_player(run_dir):
-    """play(path, episodes, seed): rows of a learner run's saved policy (see evaluate_policy)."""
+    """play(policy, episodes, seed): rows of a learner run's saved policy (see evaluate_policy)."""
     import expert
     import nets
     import offpac_il
@@ -1259,8 +1259,9 @@ def policy_player(run_dir):
     spaces, _, learner, _ = offpac_il.prepare(config, env, np.random.default_rng(config.seed))
     references = expert.references_or_nan(config.env)
 
-    def play(path: Path, episodes: int, seed: int) -> list[dict]:
-        learner.load_policy_state(nets.load_arrays(path))
+    def play(policy: Path | dict, episodes: int, seed: int) -> list[dict]:
+        """policy: a policy file, or the arrays it holds."""
+        learner.load_policy_state(policy if isinstance(policy, dict) else nets.load_arrays(policy))
         rng = np.random.default_rng(seed)
         rows = []
         for episode in range(episodes):
@@ -1314,6 +1315,60 @@ def evaluate_snapshots(run_dir, episodes: int = 20, seed: int = 3_000_000) -> li
         {"interactions": int(path.stem), **played_summary(play(path, episodes, seed))}
         for path in paths
     ]
+
+
+def exponential_averages(snapshots: Sequence[tuple[int, dict]], horizon: float) -> list[dict]:
+    """Polyak averages of a run's policy snapshots, one per snapshot: after snapshot k at
+    t_k interactions, avg <- avg + (1 - exp(-(t_k - t_{k-1}) / horizon)) (snapshot - avg),
+    from avg = the first snapshot (the initial PN, as --policy-average starts). With one
+    update per interaction this is --policy-average 1/horizon seen only at the snapshots.
+    Arrays that are not PN's weights (the fixed z_0) are the latest snapshot's."""
+    averages, average, last = [], None, None
+    for interactions, arrays in snapshots:
+        if average is None:
+            average = {k: v.astype(np.float64) for k, v in arrays.items()}
+        else:
+            rate = 1.0 - np.exp(-(interactions - last) / horizon)
+            for key, value in arrays.items():
+                if key == "policy/fixed_noise":
+                    average[key] = value.astype(np.float64)
+                else:
+                    average[key] += rate * (value - average[key])
+        last = interactions
+        averages.append({k: v.astype(arrays[k].dtype) for k, v in average.items()})
+    return averages
+
+
+def averaged_snapshots(
+    run_dir, horizons: Sequence[float], episodes: int = 5, seed: int = 3_000_000
+) -> list[dict]:
+    """What a longer or shorter --policy-average would have scored, after the fact: at
+    each snapshot, the exponential average of PN's snapshots so far (`exponential_averages`)
+    for each horizon, played over the same `episodes` new starts. One row per snapshot:
+    each horizon's mean normalised score and falls, and PN's own."""
+    import offpac_il
+    from expert import UserError
+
+    read_config(run_dir)
+    paths = sorted((Path(run_dir) / offpac_il.SNAPSHOTS).glob("*.npz"))
+    if len(paths) < 2:
+        raise UserError(f"{run_dir} holds fewer than two policy snapshots")
+    import nets
+
+    snapshots = [(int(path.stem), nets.load_arrays(path)) for path in paths]
+    play = policy_player(run_dir)
+    rows = [{"interactions": t} for t, _ in snapshots]
+    for name, horizon in [("pn", None), *((f"h{h:g}", h) for h in horizons)]:
+        weights = (
+            [arrays for _, arrays in snapshots]
+            if horizon is None
+            else exponential_averages(snapshots, horizon)
+        )
+        for row, arrays in zip(rows, weights, strict=True):
+            summary = played_summary(play(arrays, episodes, seed))
+            row[f"{name}_score"] = summary["normalized_score"]
+            row[f"{name}_fell"] = summary["fell"]
+    return rows
 
 
 def played_summary(rows: list[dict]) -> dict:
@@ -1414,6 +1469,16 @@ def run_command(argv) -> int:
     )
     evaluation.add_argument("--episodes", type=positive_int, default=20)
     evaluation.add_argument("--seed", type=int, default=3_000_000, help="reset seed of the first")
+    averaging = sub.add_parser(
+        "average-snapshots",
+        help="what other --policy-average horizons would have scored, from the snapshots",
+    )
+    averaging.add_argument("run_dir")
+    averaging.add_argument(
+        "--horizons", type=float, nargs="+", default=[10_000, 30_000], metavar="INTERACTIONS"
+    )
+    averaging.add_argument("--episodes", type=positive_int, default=5)
+    averaging.add_argument("--seed", type=int, default=3_000_000, help="reset seed of the first")
     noise = sub.add_parser(
         "gradient-noise", help="the noise z's share of gradient (6)'s variance, a table"
     )
@@ -1437,6 +1502,11 @@ def run_command(argv) -> int:
             f"normalised score {summary['normalized_score']:.3f} ± {summary['std']:.3f};"
             f" {summary['fell']} of {summary['episodes']} episodes fell"
         )
+        return 0
+    if args.command == "average-snapshots":
+        if min(args.horizons) <= 0:
+            raise UserError("--horizons must be positive numbers of interactions")
+        print_rows(averaged_snapshots(args.run_dir, args.horizons, args.episodes, args.seed))
         return 0
     if args.command == "gradient-noise":
         if args.draws < 2:

@@ -563,6 +563,9 @@ def test_hold_command_prints_one_row_per_run(tmp_path, capsys):
         (["evaluate", "{run}", "--policy", "worst"], "--policy worst"),
         (["evaluate", "{run}", "--policy", "5000"], "0005000.npz does not exist"),
         (["evaluate", "{run}", "--policy", "snapshots"], "holds no policy snapshots"),
+        (["average-snapshots", "{absent}"], "config.json missing"),
+        (["average-snapshots", "{run}"], "fewer than two policy snapshots"),
+        (["average-snapshots", "{run}", "--horizons", "0"], "--horizons"),
     ],
 )
 def test_bad_command_lines_end_in_one_line_and_status_2(tmp_path, capsys, argv, says):

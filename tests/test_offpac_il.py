@@ -1100,6 +1100,49 @@ def test_evaluate_plays_the_saved_policy_from_new_starts(tmp_path, hopper_demos)
     assert experiments.evaluate_policy(tmp_path / "run", "final", 3, seed=7) != rows
 
 
+def test_exponential_averages_are_the_polyak_average_seen_at_the_snapshots():
+    """`experiments.exponential_averages`: after a gap of t interactions the old average
+    keeps exp(-t / horizon) of its weight, as t soft updates at rate 1 / horizon towards
+    a fixed PN would leave it; z_0 is never averaged; dtypes are kept."""
+    rng = np.random.default_rng(0)
+    first, second = (
+        {"policy/w": rng.normal(size=(3, 2)).astype(np.float32), "policy/fixed_noise": z}
+        for z in (np.zeros(2, np.float32), np.ones(2, np.float32))
+    )
+    horizon, gap = 10_000.0, 5_000
+    start, after = experiments.exponential_averages([(0, first), (gap, second)], horizon)
+    np.testing.assert_array_equal(start["policy/w"], first["policy/w"])
+    kept = np.exp(-gap / horizon)
+    expected = kept * first["policy/w"] + (1 - kept) * second["policy/w"]
+    np.testing.assert_allclose(after["policy/w"], expected, rtol=1e-5)
+    np.testing.assert_array_equal(after["policy/fixed_noise"], second["policy/fixed_noise"])
+    assert after["policy/w"].dtype == np.float32
+
+    initial = nets.MLP.create([3, 2], "identity", np.random.default_rng(1), np.float64)
+    policy = nets.MLP.create([3, 2], "identity", np.random.default_rng(2), np.float64)
+    average = initial.copy()
+    for _ in range(gap):
+        nets.soft_update(average, policy, 1 / horizon)
+    snapshots = [(0, initial.state("policy")), (gap, policy.state("policy"))]
+    offline = experiments.exponential_averages(snapshots, horizon)[-1]
+    for name, online in average.state("policy").items():
+        np.testing.assert_allclose(offline[name], online, atol=1e-4)  # (1 - 1/h)^t ~ e^(-t/h)
+
+
+def test_averaged_snapshots_with_a_tiny_horizon_play_the_snapshots(tmp_path, hopper_demos):
+    """`experiments.averaged_snapshots`: one row per snapshot; a horizon far shorter than
+    the gap between snapshots averages nothing, so it scores what PN scored."""
+    offpac_il.train(tiny_config(tmp_path / "run", hopper_demos))
+    rows = experiments.averaged_snapshots(tmp_path / "run", [1e-9, 1e15], episodes=2, seed=7)
+    snapshots = sorted((tmp_path / "run" / offpac_il.SNAPSHOTS).glob("*.npz"))
+    assert [row["interactions"] for row in rows] == [int(p.stem) for p in snapshots]
+    for row in rows:
+        assert (row["h1e-09_score"], row["h1e-09_fell"]) == (row["pn_score"], row["pn_fell"])
+    # A horizon far longer than the run keeps the initial PN throughout.
+    assert len({row["h1e+15_score"] for row in rows}) == 1
+    assert rows[0]["h1e+15_score"] == rows[0]["pn_score"]
+
+
 def test_gradient_noise_separates_the_noise_part_of_gradient_6(tmp_path, hopper_demos):
     """`experiments.gradient_noise`: with the states fixed, what varies is the mean over
     Z noise rows, whose variance shrinks as 1/Z; a deterministic policy has none."""
