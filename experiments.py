@@ -31,7 +31,7 @@ seeds are pooled into their mean with a min-max band:
 
 Command line:
 
-    python experiments.py sweep quick|full [--runs DIR] [--workers N] [--scheduler ADDRESS]
+    python experiments.py sweep quick|full|ablations [--runs DIR] [--workers N] [--scheduler ADDRESS]
                                            [--methods BC GAIL ...] [--envs Hopper-v4 ...]
     python experiments.py figures quick|full [--runs DIR [DIR ...]] [--out DIR]
     python experiments.py curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination] [--x-max N]
@@ -40,6 +40,7 @@ Command line:
     python experiments.py evaluate RUN_DIR [--policy final|best|checkpoint|average|N|snapshots]
                                            [--episodes 20]
     python experiments.py gradient-noise RUN_DIR [--samples 8 128] [--draws 30]
+    python experiments.py average-snapshots RUN_DIR [--horizons 10000 30000] [--episodes 5]
 """
 
 from __future__ import annotations
@@ -1346,6 +1347,7 @@ def averaged_snapshots(
     each snapshot, the exponential average of PN's snapshots so far (`exponential_averages`)
     for each horizon, played over the same `episodes` new starts. One row per snapshot:
     each horizon's mean normalised score and falls, and PN's own."""
+    import nets
     import offpac_il
     from expert import UserError
 
@@ -1353,8 +1355,6 @@ def averaged_snapshots(
     paths = sorted((Path(run_dir) / offpac_il.SNAPSHOTS).glob("*.npz"))
     if len(paths) < 2:
         raise UserError(f"{run_dir} holds fewer than two policy snapshots")
-    import nets
-
     snapshots = [(int(path.stem), nets.load_arrays(path)) for path in paths]
     play = policy_player(run_dir)
     rows = [{"interactions": t} for t, _ in snapshots]
