@@ -31,8 +31,8 @@ seeds are pooled into their mean with a min-max band:
 
 Command line:
 
-    python experiments.py sweep quick|full|ablations [--runs DIR] [--workers N] [--scheduler ADDRESS]
-                                           [--methods BC GAIL ...] [--envs Hopper-v4 ...]
+    python experiments.py sweep quick|full|ablations [--runs DIR] [--workers N]
+                                [--scheduler ADDRESS] [--methods BC GAIL ...] [--envs Hopper-v4 ...]
     python experiments.py figures quick|full [--runs DIR [DIR ...]] [--out DIR]
     python experiments.py curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination] [--x-max N]
     python experiments.py hold RUN_DIR [RUN_DIR ...] [--since N] [--until N]
