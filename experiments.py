@@ -1504,7 +1504,7 @@ def run_command(argv) -> int:
         )
         return 0
     if args.command == "average-snapshots":
-        if min(args.horizons) <= 0:
+        if not all(0 < horizon < float("inf") for horizon in args.horizons):  # NaN fails too
             raise UserError("--horizons must be positive numbers of interactions")
         print_rows(averaged_snapshots(args.run_dir, args.horizons, args.episodes, args.seed))
         return 0

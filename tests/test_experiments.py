@@ -566,6 +566,7 @@ def test_hold_command_prints_one_row_per_run(tmp_path, capsys):
         (["average-snapshots", "{absent}"], "config.json missing"),
         (["average-snapshots", "{run}"], "fewer than two policy snapshots"),
         (["average-snapshots", "{run}", "--horizons", "0"], "--horizons"),
+        (["average-snapshots", "{run}", "--horizons", "10000", "nan"], "--horizons"),
     ],
 )
 def test_bad_command_lines_end_in_one_line_and_status_2(tmp_path, capsys, argv, says):
