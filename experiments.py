@@ -1402,7 +1402,7 @@ def main(argv=None) -> int:
 
 def run_command(argv) -> int:
     """main's work; a user's mistake raises UserError."""
-    from expert import CommandLineParser, UserError, positive_int
+    from expert import CommandLineParser, UserError, positive_int, positive_number
 
     parser = CommandLineParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -1475,7 +1475,11 @@ def run_command(argv) -> int:
     )
     averaging.add_argument("run_dir")
     averaging.add_argument(
-        "--horizons", type=float, nargs="+", default=[10_000, 30_000], metavar="INTERACTIONS"
+        "--horizons",
+        type=positive_number,
+        nargs="+",
+        default=[10_000, 30_000],
+        metavar="INTERACTIONS",
     )
     averaging.add_argument("--episodes", type=positive_int, default=5)
     averaging.add_argument("--seed", type=int, default=3_000_000, help="reset seed of the first")
@@ -1504,8 +1508,6 @@ def run_command(argv) -> int:
         )
         return 0
     if args.command == "average-snapshots":
-        if not all(0 < horizon < float("inf") for horizon in args.horizons):  # NaN fails too
-            raise UserError("--horizons must be positive numbers of interactions")
         print_rows(averaged_snapshots(args.run_dir, args.horizons, args.episodes, args.seed))
         return 0
     if args.command == "gradient-noise":

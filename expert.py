@@ -1182,6 +1182,14 @@ def positive_int(text: str) -> int:
     return value
 
 
+def positive_number(text: str) -> float:
+    """A finite number above 0, such as a time constant ``1e4`` (NaN and inf refused)."""
+    value = float(text)
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {text}")
+    return value
+
+
 def add_config_flags(parser: argparse.ArgumentParser) -> None:
     """One flag per ARSConfig and sac.SACConfig field, help from the fields' docstrings.
 
