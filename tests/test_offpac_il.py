@@ -993,7 +993,7 @@ def test_each_ablation_runs_from_the_command_line_and_resumes(
 
 def test_paper_flag_restores_appendix_b_and_explicit_flags_win():
     defaults = offpac_il.parse_args([])
-    assert defaults.policy_expert_states == 0.5 and defaults.policy_lr == 3e-5
+    assert defaults.policy_expert_states == 0.5 and defaults.policy_lr == 2.3e-5
     paper = offpac_il.parse_args(["--paper"])
     for name, value in offpac_il.PAPER_SETTINGS.items():
         assert getattr(paper, name) == value
