@@ -642,6 +642,10 @@ class Run:
             settings = {"method": method_of(self.config), **dataclasses.asdict(self.config)}
             nets.write_text(self.run_dir / "config.json", json.dumps(settings, indent=2) + "\n")
         self.started = time.perf_counter() - self.progress.wall_seconds
+        self.session_start, self.session_interactions = (
+            time.perf_counter(),
+            self.progress.interactions,
+        )
 
     def normalized(self, value: float) -> float:
         return expert.normalized_score(value, (self.random_return, self.expert_return))
@@ -969,8 +973,11 @@ def train_gail(config: GAILConfig, resume: bool = False) -> offpac_il.Progress:
         now = time.perf_counter()
         progress.wall_seconds = now - run.started
         if now - last_log >= config.log_every:
-            rate = progress.interactions / max(progress.wall_seconds, 1e-9)
-            eta = (config.total_steps - progress.interactions) / max(rate, 1e-9)
+            done = progress.interactions - run.session_interactions
+            rate = done / max(now - run.session_start, 1e-9)
+            eta = offpac_il.eta_seconds(
+                config.total_steps - progress.interactions, done, now - run.session_start
+            )
             print(
                 f"train {progress.interactions:>8d} steps"
                 f"  return {progress.recent_returns[-1]:8.1f}"

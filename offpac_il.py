@@ -1158,6 +1158,14 @@ def restore(run_dir) -> tuple[Config, Spaces, Triplets, Learner, ReplayBuffer, P
     return config, spaces, expert_buffer, learner, replay, progress
 
 
+def eta_seconds(remaining: float, done: float, seconds: float) -> float:
+    """Time left at the pace of this process so far; a resumed run's earlier sessions may
+    have run on a faster or slower machine, so their pace is not used."""
+    if done <= 0:
+        return float("nan")
+    return max(remaining, 0) * seconds / done
+
+
 def train(config: Config, resume: bool = False) -> Progress:
     """Algorithm 1, with evaluation, logging and checkpoints around it."""
     check_config(config)
@@ -1182,7 +1190,8 @@ def train(config: Config, resume: bool = False) -> Progress:
         )
 
     started = time.perf_counter() - progress.wall_seconds
-    last_checkpoint = last_log = time.perf_counter()
+    last_checkpoint = last_log = session_start = time.perf_counter()
+    session_interactions = progress.interactions
     while True:
         recent_returns, stats = progress.recent_returns, progress.last_stats
         # Evaluate at 0 and every eval_every interactions (at the episode end that crosses it).
@@ -1284,8 +1293,11 @@ def train(config: Config, resume: bool = False) -> Progress:
         now = time.perf_counter()
         progress.wall_seconds = now - started
         if now - last_log >= config.log_every:
-            rate = progress.interactions / max(progress.wall_seconds, 1e-9)
-            eta = (config.total_steps - progress.interactions) / max(rate, 1e-9)
+            eta = eta_seconds(
+                config.total_steps - progress.interactions,
+                progress.interactions - session_interactions,
+                now - session_start,
+            )
             score = expert.normalized_score(episode_return, references)
             print(
                 f"train {progress.interactions:>8d} steps  return {episode_return:8.1f}"

@@ -1163,3 +1163,11 @@ def test_gradient_noise_separates_the_noise_part_of_gradient_6(tmp_path, hopper_
     offpac_il.train(tiny_config(run, hopper_demos, extra=["--policy-type", "deterministic"]))
     (row,) = experiments.gradient_noise(run, samples=(8,), draws=5)
     assert row["noise_variance"] == 0 and row["total_variance"] > 0
+
+
+def test_eta_uses_this_process_pace_and_never_goes_negative():
+    # 1 000 interactions done in 100 s since this process started: 10 per second.
+    assert offpac_il.eta_seconds(5_000, 1_000, 100.0) == pytest.approx(500.0)
+    # The last episode may run past the budget.
+    assert offpac_il.eta_seconds(-300, 1_000, 100.0) == 0.0
+    assert np.isnan(offpac_il.eta_seconds(5_000, 0, 3.0))
