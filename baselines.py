@@ -642,10 +642,7 @@ class Run:
             settings = {"method": method_of(self.config), **dataclasses.asdict(self.config)}
             nets.write_text(self.run_dir / "config.json", json.dumps(settings, indent=2) + "\n")
         self.started = time.perf_counter() - self.progress.wall_seconds
-        self.session_start, self.session_interactions = (
-            time.perf_counter(),
-            self.progress.interactions,
-        )
+        self.pace = offpac_il.Pace(self.progress.interactions)
 
     def normalized(self, value: float) -> float:
         return expert.normalized_score(value, (self.random_return, self.expert_return))
@@ -973,10 +970,9 @@ def train_gail(config: GAILConfig, resume: bool = False) -> offpac_il.Progress:
         now = time.perf_counter()
         progress.wall_seconds = now - run.started
         if now - last_log >= config.log_every:
-            done = progress.interactions - run.session_interactions
-            rate = done / max(now - run.session_start, 1e-9)
-            eta = offpac_il.eta_seconds(
-                config.total_steps - progress.interactions, done, now - run.session_start
+            rate = run.pace.rate(progress.interactions, now)
+            eta = run.pace.eta_seconds(
+                config.total_steps - progress.interactions, progress.interactions, now
             )
             print(
                 f"train {progress.interactions:>8d} steps"

@@ -1158,12 +1158,25 @@ def restore(run_dir) -> tuple[Config, Spaces, Triplets, Learner, ReplayBuffer, P
     return config, spaces, expert_buffer, learner, replay, progress
 
 
-def eta_seconds(remaining: float, done: float, seconds: float) -> float:
-    """Time left at the pace of this process so far; a resumed run's earlier sessions may
-    have run on a faster or slower machine, so their pace is not used."""
-    if done <= 0:
-        return float("nan")
-    return max(remaining, 0) * seconds / done
+class Pace:
+    """Interactions per second since this process started or resumed the run: a resumed
+    run's earlier sessions may have run on a faster or slower machine, so their pace is
+    not used for the log's rate and ETA."""
+
+    def __init__(self, interactions: int, now: float | None = None):
+        self.start = time.perf_counter() if now is None else now
+        self.interactions = interactions
+
+    def rate(self, interactions: int, now: float) -> float:
+        return (interactions - self.interactions) / max(now - self.start, 1e-9)
+
+    def eta_seconds(self, remaining: int, interactions: int, now: float) -> float:
+        """Seconds left for `remaining` interactions; never negative (the last episode may
+        run past the budget), NaN before this process has done any."""
+        done = interactions - self.interactions
+        if done <= 0:
+            return float("nan")
+        return max(remaining, 0) * (now - self.start) / done
 
 
 def train(config: Config, resume: bool = False) -> Progress:
@@ -1190,8 +1203,8 @@ def train(config: Config, resume: bool = False) -> Progress:
         )
 
     started = time.perf_counter() - progress.wall_seconds
-    last_checkpoint = last_log = session_start = time.perf_counter()
-    session_interactions = progress.interactions
+    last_checkpoint = last_log = time.perf_counter()
+    pace = Pace(progress.interactions)
     while True:
         recent_returns, stats = progress.recent_returns, progress.last_stats
         # Evaluate at 0 and every eval_every interactions (at the episode end that crosses it).
@@ -1293,10 +1306,8 @@ def train(config: Config, resume: bool = False) -> Progress:
         now = time.perf_counter()
         progress.wall_seconds = now - started
         if now - last_log >= config.log_every:
-            eta = eta_seconds(
-                config.total_steps - progress.interactions,
-                progress.interactions - session_interactions,
-                now - session_start,
+            eta = pace.eta_seconds(
+                config.total_steps - progress.interactions, progress.interactions, now
             )
             score = expert.normalized_score(episode_return, references)
             print(

@@ -1166,8 +1166,11 @@ def test_gradient_noise_separates_the_noise_part_of_gradient_6(tmp_path, hopper_
 
 
 def test_eta_uses_this_process_pace_and_never_goes_negative():
-    # 1 000 interactions done in 100 s since this process started: 10 per second.
-    assert offpac_il.eta_seconds(5_000, 1_000, 100.0) == pytest.approx(500.0)
+    # Resumed at 200 000 interactions (earlier sessions' pace is not used); 1 000 more in
+    # 100 s since: 10 per second.
+    pace = offpac_il.Pace(200_000, now=50.0)
+    assert pace.rate(201_000, now=150.0) == pytest.approx(10.0)
+    assert pace.eta_seconds(5_000, 201_000, now=150.0) == pytest.approx(500.0)
     # The last episode may run past the budget.
-    assert offpac_il.eta_seconds(-300, 1_000, 100.0) == 0.0
-    assert np.isnan(offpac_il.eta_seconds(5_000, 0, 3.0))
+    assert pace.eta_seconds(-300, 201_000, now=150.0) == 0.0
+    assert np.isnan(pace.eta_seconds(5_000, 200_000, now=53.0))
