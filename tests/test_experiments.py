@@ -327,7 +327,9 @@ def test_interpolated_band_pools_runs_on_a_common_grid():
 # ----------------------------------------------------------------------------------------
 
 
-def test_notebook_runs_in_quick_mode(tmp_path):
+def execute_notebook(injected: str):
+    """experiments.ipynb executed with `injected` run after its parameters cell, as
+    papermill does; returns the executed notebook and the text of its outputs."""
     import nbclient
     import nbformat
     from jupyter_client.kernelspec import KernelSpecManager
@@ -339,21 +341,24 @@ def test_notebook_runs_in_quick_mode(tmp_path):
         i for i, cell in enumerate(notebook.cells) if "parameters" in cell.metadata.get("tags", [])
     ]
     assert "QUICK = True" in notebook.cells[parameters].source
-    readme_figures = {p: p.stat().st_mtime_ns for p in (ROOT / "figures").glob("*")}
-    # Injected after the parameters cell, as papermill does: runs and figures in tmp_path.
-    injected = (
-        f"QUICK = True\nRUNS = {str(tmp_path / 'runs')!r}\nFIGURES = {str(tmp_path / 'fig')!r}"
-    )
+    assert "SWEEP = True" in notebook.cells[parameters].source
     notebook.cells.insert(parameters + 1, nbformat.v4.new_code_cell(injected))
     nbclient.NotebookClient(
         notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(ROOT)}}
     ).execute()
-
     text = "\n".join(
         output.get("text", "")
         for cell in notebook.cells
         if cell.cell_type == "code"
         for output in cell.outputs
+    )
+    return notebook, text
+
+
+def test_notebook_runs_in_quick_mode(tmp_path):
+    readme_figures = {p: p.stat().st_mtime_ns for p in (ROOT / "figures").glob("*")}
+    notebook, text = execute_notebook(
+        f"QUICK = True\nRUNS = {str(tmp_path / 'runs')!r}\nFIGURES = {str(tmp_path / 'fig')!r}"
     )
     assert "quick mode" in text
     assert "'failed'" not in text  # the sweep's status counts
@@ -596,3 +601,17 @@ def test_ablation_plan_runs_every_ablation_at_its_budget_seed_by_seed():
         assert s.args[-len(experiments.ABLATION_SWEEP_ARGS) :] == experiments.ABLATION_SWEEP_ARGS
     assert len({s.run_dir for s in specs}) == len(specs)
     assert {s.labels["env"] for s in experiments.ablation_plan("r", "Ant-v4")} == {"Ant-v4"}
+
+
+def test_notebook_without_sweep_starts_nothing_and_draws_finished_runs(tmp_path):
+    elsewhere = tmp_path / "elsewhere"
+    fake_run(elsewhere, "BC", 0, 7, "dense", 0.9)
+    runs = tmp_path / "runs"
+    execute_notebook(
+        f"QUICK = True\nSWEEP = False\nRUNS = {str(runs)!r}\n"
+        f"MORE_RUNS = [{str(elsewhere)!r}]\nFIGURES = {str(tmp_path / 'fig')!r}"
+    )
+    assert not runs.exists()  # the plan's runs were listed, none was started
+    assert is_png(tmp_path / "fig" / "figure2.png")  # drawn from the finished run alone
+    per_run = (tmp_path / "fig" / "figure2_runs.csv").read_text().splitlines()
+    assert len(per_run) == 2 and per_run[1].startswith("BC,Hopper-v4,dense,7,0,")
