@@ -607,11 +607,12 @@ def test_notebook_without_sweep_starts_nothing_and_draws_finished_runs(tmp_path)
     elsewhere = tmp_path / "elsewhere"
     fake_run(elsewhere, "BC", 0, 7, "dense", 0.9)
     runs = tmp_path / "runs"
-    execute_notebook(
+    _, text = execute_notebook(
         f"QUICK = True\nSWEEP = False\nRUNS = {str(runs)!r}\n"
         f"MORE_RUNS = [{str(elsewhere)!r}]\nFIGURES = {str(tmp_path / 'fig')!r}"
     )
     assert not runs.exists()  # the plan's runs were listed, none was started
+    assert "SWEEP = False: no run started" in text
     assert is_png(tmp_path / "fig" / "figure2.png")  # drawn from the finished run alone
     per_run = (tmp_path / "fig" / "figure2_runs.csv").read_text().splitlines()
     assert len(per_run) == 2 and per_run[1].startswith("BC,Hopper-v4,dense,7,0,")
