@@ -129,12 +129,17 @@ class GAILConfig(RunSettings):
     """Interactions between evaluations."""
     bc_init: str = ""
     """BC+GAIL: a finished BC run directory whose final policy starts the policy."""
+    # BC fits sigma to noise-free demonstrations (log sigma -3.7 to -4.8 on Hopper):
+    # PPO started there has almost no exploration noise, and it unlearned (README).
+    bc_reset_log_std: bool = False
+    """BC+GAIL: start log sigma at log_std_init, not at the BC policy's (the default
+    starts from the whole BC policy: the paper's "GAIL initialized by BC")."""
     value_hidden: tuple[int, ...] = (100, 100)
     """Hidden layer sizes of the value network V(s)."""
     discriminator_hidden: tuple[int, ...] = (100, 100)
     """Hidden layer sizes of the discriminator D(s, a)."""
     log_std_init: float = 0.0
-    """Initial log sigma of every action dimension, in [-1, 1] action units (not BC+GAIL)."""
+    """Initial log sigma of every action dimension, in [-1, 1] action units."""
     rollout_steps: int = 2048
     """Interactions per iteration, as whole episodes (at least this many)."""
     ppo_epochs: int = 10
@@ -898,8 +903,9 @@ def gail_iteration(
 
 
 def load_bc_init(config: GAILConfig, policy: GaussianPolicy) -> None:
-    """BC+GAIL: start from a finished BC run's final policy (mean network and log sigma),
-    trained on the same task and demonstrations with the same state standardisation."""
+    """BC+GAIL: start from a finished BC run's final policy (its mean network, and its
+    log sigma unless bc_reset_log_std), trained on the same task and demonstrations with
+    the same state standardisation."""
     bc_dir = Path(config.bc_init)
     try:
         saved = json.loads((bc_dir / "config.json").read_text())
@@ -921,7 +927,10 @@ def load_bc_init(config: GAILConfig, policy: GaussianPolicy) -> None:
         different.append("demonstrations")
     if different:
         raise UserError(f"--bc-init {bc_dir}: its {', '.join(different)} differ from this run's")
+    log_std_init = policy.log_std.copy()
     policy.load_state(nets.load_arrays(bc_dir / "policy_final.npz"), "policy")
+    if config.bc_reset_log_std:
+        policy.log_std[...] = log_std_init
 
 
 def train_gail(config: GAILConfig, resume: bool = False) -> offpac_il.Progress:

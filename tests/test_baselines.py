@@ -468,15 +468,21 @@ def test_gail_and_bc_gail_command_lines_write_their_files(tmp_path, hopper_demos
         assert int(rows[-1]["interactions"]) >= 300 and "eval" in result.stdout
         assert all(np.isfinite(float(r["normalized_score"])) for r in rows)
         assert rows[-1]["policy_grad_norm"] != "" and rows[-1]["q_expert"] == ""
-    # BC+GAIL's policy starts as the BC run's final policy, log sigma included.
-    config = baselines.GAILConfig(
-        **{**TINY_GAIL_CONFIG, "demos": str(hopper_demos), "bc_init": str(bc_run)}
-    )
-    policy = baselines.GaussianPolicy.create(11, 3, (8, 8), 0.0, np.random.default_rng(0))
-    baselines.load_bc_init(config, policy)
+    # BC+GAIL's policy starts as the BC run's final policy, log sigma included; with
+    # bc_reset_log_std, with the BC run's mean network and log sigma at log_std_init.
     bc_final = nets.load_arrays(bc_run / "policy_final.npz")
-    for key, value in policy.state("policy").items():
-        np.testing.assert_array_equal(value, bc_final[key])
+    assert np.all(bc_final["policy/log_std"] != -0.5)
+    for reset in (False, True):
+        config = baselines.GAILConfig(
+            **{**TINY_GAIL_CONFIG, "demos": str(hopper_demos), "bc_init": str(bc_run)},
+            log_std_init=-0.5,
+            bc_reset_log_std=reset,
+        )
+        policy = baselines.GaussianPolicy.create(11, 3, (8, 8), -0.5, np.random.default_rng(0))
+        baselines.load_bc_init(config, policy)
+        for key, value in policy.state("policy").items():
+            expected = np.full(3, -0.5) if key == "policy/log_std" and reset else bc_final[key]
+            np.testing.assert_array_equal(value, expected, err_msg=f"{key}, reset={reset}")
 
 
 def tiny_gail_config(run_dir: Path, demos: Path, seed=0) -> baselines.GAILConfig:
