@@ -927,10 +927,9 @@ def load_bc_init(config: GAILConfig, policy: GaussianPolicy) -> None:
         different.append("demonstrations")
     if different:
         raise UserError(f"--bc-init {bc_dir}: its {', '.join(different)} differ from this run's")
-    log_std_init = policy.log_std.copy()
     policy.load_state(nets.load_arrays(bc_dir / "policy_final.npz"), "policy")
     if config.bc_reset_log_std:
-        policy.log_std[...] = log_std_init
+        policy.log_std[...] = config.log_std_init
 
 
 def train_gail(config: GAILConfig, resume: bool = False) -> offpac_il.Progress:

@@ -478,7 +478,7 @@ def test_gail_and_bc_gail_command_lines_write_their_files(tmp_path, hopper_demos
             log_std_init=-0.5,
             bc_reset_log_std=reset,
         )
-        policy = baselines.GaussianPolicy.create(11, 3, (8, 8), -0.5, np.random.default_rng(0))
+        policy = baselines.GaussianPolicy.create(11, 3, (8, 8), 0.0, np.random.default_rng(0))
         baselines.load_bc_init(config, policy)
         for key, value in policy.state("policy").items():
             expected = np.full(3, -0.5) if key == "policy/log_std" and reset else bc_final[key]
