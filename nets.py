@@ -17,54 +17,16 @@ Conventions, after numpy-ml and micrograd:
 Speed notes, measured on 8192 x 500 float32 arrays (the policy step's critic pass):
 a boolean mask costs as much as a 500 x 500 matrix product there (about 30 ms), so the
 leaky-ReLU derivative is computed arithmetically, and element-wise work runs in place
-with `out=`. `map_chunks` lets the learner run row chunks that fit the L2 cache on both
-cores.
+with `out=`.
 """
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
-import json
-import os
-import signal
-import sys
-import tempfile
-import threading
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 LEAKY_SLOPE = 0.01
-
-
-def _reuse_freed_memory() -> None:
-    """Ask glibc's malloc to keep freed memory for reuse instead of returning it.
-
-    By default, arrays above 128 KB-32 MB are mapped fresh from the kernel and unmapped
-    when freed, so every (1024, 500) float32 temporary of the policy step starts with
-    500 page faults: about 12 000 per update, 10-20 % of its time on this machine. With
-    these two settings the same memory is reused and the faults disappear. Linux/glibc
-    only; elsewhere this does nothing.
-    """
-    import ctypes
-    import ctypes.util
-
-    name = ctypes.util.find_library("c")
-    if not name:
-        return
-    try:
-        libc = ctypes.CDLL(name)
-        m_trim_threshold, m_mmap_threshold = -1, -3
-        libc.mallopt(m_mmap_threshold, 512 * 2**20)  # allocations below 512 MB: heap
-        libc.mallopt(m_trim_threshold, 1024 * 2**20)  # keep up to 1 GB of freed heap
-    except (OSError, AttributeError):
-        pass
-
-
-_reuse_freed_memory()
 
 
 # ----------------------------------------------------------------------------------------
@@ -396,49 +358,27 @@ class MLP:
         d_x = tuple(d_blocks) if len(cache.blocks) > 1 else d_blocks[0]
         return d_x, grads
 
-    # -- the input-gradient penalty -----------------------------------------------------
+    # -- the critic's sharpness, a diagnostic ------------------------------------------
 
-    def input_gradient_penalty(self, cache: Cache) -> tuple[float, dict[str, np.ndarray]]:
-        """P = 1/2 mean_n ||dx_n/du_n||^2 and dP/dparam, for a single-logit network.
+    def input_gradient_sq_norm(self, cache: Cache) -> float:
+        """1/2 mean_n ||dx_n/du_n||^2 for a single-logit network: how sharp the critic's
+        logit x is in its input u = [s, a] on the cached rows (the quantity DAC's
+        zero-centred gradient penalty, Mescheder et al. 2018, keeps small).
 
-        x is the logit (the critic's q = sigmoid(x)); u the whole input row. This is the
-        zero-centred gradient penalty of Mescheder et al. (2018), which DAC (Kostrikov et
-        al., 2019) uses to keep its critic smooth; here it is an optional stabiliser.
-
-        Derivation. A leaky-ReLU network is piecewise linear: with the slopes
-        m_i = f'(h_i) held fixed (they change only at kinks, where P's gradient is
-        undefined), the input gradient is a product of matrices, computed in reverse:
-            d_{L-1} = m_{L-1} * w            (w = the last layer's single column)
-            d_i     = (d_{i+1} W_i^T) * m_i  (i = L-2 ... 1)
-            g       = d_1 W_0^T              (dx/du, one row per input row)
-        P is a function of W_0 ... W_{L-1} alone (biases move only the slopes), so its
-        gradient is this chain run forwards, each step the transpose of the one above:
-            G = g / N;  dP/dW_0 = G^T d_1;   c_1 = G W_0
-            e_i = c_i * m_i;  dP/dW_i = e_i^T d_{i+1};  c_{i+1} = e_i W_i
-            dP/dw = sum_n c_{L-1} * m_{L-1}.
-        Returns (P, {"W0": ..., ..., "W_{L-1}": ...}); bias gradients are zero and left out.
+        A leaky-ReLU network is piecewise linear: with the slopes m_i = f'(h_i) fixed,
+        dx/du is a product of matrices, computed in reverse:
+            d_{L-1} = m_{L-1} * w,  d_i = (d_{i+1} W_i^T) * m_i,  dx/du = d_1 W_0^T.
         """
         if self.sizes[-1] != 1 or self.n_layers < 2:
-            raise ValueError("the input-gradient penalty needs one output and a hidden layer")
+            raise ValueError("the input gradient's norm needs one output and a hidden layer")
         last = self.n_layers - 1
         slopes = [np.where(a > 0, 1.0, LEAKY_SLOPE).astype(self.dtype) for a in cache.activations]
-        deltas = [None] * self.n_layers  # deltas[i] = dx/dh_i for hidden layers 1..L-1
-        deltas[last] = slopes[last - 1] * self.params[f"W{last}"][:, 0]  # (N, h_{L-1})
+        delta = slopes[last - 1] * self.params[f"W{last}"][:, 0]  # (N, h_{L-1})
         for i in reversed(range(1, last)):
             # (N, h_i+1) @ (h_i+1, h_i) -> (N, h_i)
-            deltas[i] = (deltas[i + 1] @ self.params[f"W{i}"].T) * slopes[i - 1]
-        g = deltas[1] @ self.params["W0"].T  # (N, h1) @ (h1, in) -> (N, in): dx/du
-        n = len(g)
-        penalty = 0.5 * float((g * g).sum()) / n
-        G = g / n  # dP/dg
-        grads = {"W0": G.T @ deltas[1]}  # (in, N) @ (N, h1) -> (in, h1)
-        c = G @ self.params["W0"]  # (N, in) @ (in, h1) -> (N, h1): dP/d deltas[1]
-        for i in range(1, last):
-            e = c * slopes[i - 1]  # dP/d(deltas[i+1] W_i^T), (N, h_i)
-            grads[f"W{i}"] = e.T @ deltas[i + 1]  # (h_i, N) @ (N, h_i+1) -> (h_i, h_i+1)
-            c = e @ self.params[f"W{i}"]  # (N, h_i) @ (h_i, h_i+1) -> (N, h_i+1)
-        grads[f"W{last}"] = (c * slopes[last - 1]).sum(axis=0)[:, None]  # (h_{L-1}, 1)
-        return penalty, grads
+            delta = (delta @ self.params[f"W{i}"].T) * slopes[i - 1]
+        g = delta @ self.params["W0"].T  # (N, h1) @ (h1, in) -> (N, in): dx/du
+        return 0.5 * float((g * g).sum()) / len(g)
 
     # -- persistence --------------------------------------------------------------------
 
@@ -562,138 +502,3 @@ def soft_update(target: MLP, source: MLP, tau: float = 1e-3) -> None:
     for name, value in target.params.items():
         value *= 1.0 - tau
         value += tau * source.params[name]
-
-
-# ----------------------------------------------------------------------------------------
-# Saving arrays atomically.
-# ----------------------------------------------------------------------------------------
-
-
-def _write_atomically(path, write) -> None:
-    """Call write(file) on a temporary file beside `path`, then rename it to `path`.
-
-    A run killed mid-write leaves the previous file intact, never half of a new one.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes files private; results are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def save_arrays(path, arrays: dict[str, np.ndarray]) -> None:
-    """Write an .npz atomically."""
-    _write_atomically(path, lambda f: np.savez(f, **arrays))
-
-
-def write_text(path, text: str) -> None:
-    """Write a text file atomically."""
-    _write_atomically(path, lambda f: f.write(text.encode()))
-
-
-def load_arrays(path) -> dict[str, np.ndarray]:
-    with np.load(path, allow_pickle=False) as data:
-        return {key: data[key] for key in data.files}
-
-
-def save_checkpoint(run_dir, state: dict[str, np.ndarray], rng, progress, progress_text: str):
-    """A training run's checkpoint.npz (the arrays of `state`, the Generator's state, the
-    counters and rows of the `progress` dataclass), written atomically; then progress.csv.
-    One file for everything, so a kill between the two writes leaves a consistent run."""
-    counters = {k: v for k, v in dataclasses.asdict(progress).items() if k != "rows"}
-    save_arrays(
-        Path(run_dir) / "checkpoint.npz",
-        {
-            **state,
-            "rng": np.array(json.dumps(rng.bit_generator.state)),
-            "counters": np.array(json.dumps(counters)),
-            "rows": np.array(json.dumps(progress.rows)),
-        },
-    )
-    write_text(Path(run_dir) / "progress.csv", progress_text)
-
-
-def load_checkpoint(run_dir, rng) -> tuple[dict[str, np.ndarray], dict, list[dict]]:
-    """(arrays, counters, rows) of save_checkpoint's file; restores `rng` in place.
-    progress.csv may hold rows written after the checkpoint: the checkpoint's own copy
-    of the rows is the truth, and a resumed run rewrites the file from it."""
-    arrays = load_arrays(Path(run_dir) / "checkpoint.npz")
-    rng.bit_generator.state = json.loads(str(arrays["rng"]))
-    return arrays, json.loads(str(arrays["counters"])), json.loads(str(arrays["rows"]))
-
-
-# ----------------------------------------------------------------------------------------
-# Stopping a run at its next checkpoint.
-# ----------------------------------------------------------------------------------------
-
-_stop = threading.Event()
-
-
-@contextlib.contextmanager
-def stop_at_next_checkpoint():
-    """While active, SIGINT (Ctrl-C) and SIGTERM (`kill`) ask the training loop to stop at
-    its next checkpoint point: the loop sees `checkpoint_due`, writes its checkpoint and
-    raises KeyboardInterrupt (`stop_if_requested`), so nothing since the last periodic
-    checkpoint is lost. A second signal stops at once. A signal the process was started
-    to ignore stays ignored (a shell's `cmd &` ignores SIGINT); outside the main thread
-    nothing is installed."""
-    _stop.clear()
-    installed = {}
-
-    def request(signum, frame):
-        if _stop.is_set():
-            raise KeyboardInterrupt
-        _stop.set()
-        print("stopping at the next checkpoint (signal again to stop at once)", file=sys.stderr)
-
-    if threading.current_thread() is threading.main_thread():
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            if signal.getsignal(signum) is not signal.SIG_IGN:
-                installed[signum] = signal.signal(signum, request)
-    try:
-        yield
-    finally:
-        for signum, handler in installed.items():
-            signal.signal(signum, handler)
-        _stop.clear()
-
-
-def checkpoint_due(seconds_since_last: float, every: float) -> bool:
-    """A training loop's periodic checkpoint is due, or a signal asked it to stop (then
-    the loop checkpoints and calls stop_if_requested)."""
-    return seconds_since_last >= every or _stop.is_set()
-
-
-def stop_if_requested() -> None:
-    """After a checkpoint: end the run if a signal asked for it (see
-    stop_at_next_checkpoint); main() reports KeyboardInterrupt as "continue with --resume"."""
-    if _stop.is_set():
-        raise KeyboardInterrupt
-
-
-# ----------------------------------------------------------------------------------------
-# Running row chunks on both cores.
-# ----------------------------------------------------------------------------------------
-
-_POOL: ThreadPoolExecutor | None = None
-
-
-def map_chunks(fn, chunks) -> list:
-    """[fn(c) for c in chunks], on a thread pool with one thread per core.
-
-    NumPy releases the GIL inside matrix products and ufuncs on large arrays, so
-    threads run chunks in parallel. The caller limits BLAS to one thread meanwhile,
-    so that the two levels of threading do not fight over the two cores.
-    """
-    global _POOL
-    if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=os.cpu_count() or 1)
-    return list(_POOL.map(fn, chunks))

@@ -1,0 +1,479 @@
+"""The run harness every trainer shares (the learner, the baselines, the expert trainers).
+
+A trainer writes its method; this module owns everything around it, once:
+- one-line errors: `UserError`, and `run_cli`, which turns it (and a full disk) into one
+  line on stderr and exit status 2, and Ctrl-C or `kill` into "continue with --resume";
+- the command line made from a hyperparameter dataclass (`add_dataclass_flags`,
+  `config_from_args`), every number checked before anything is written (`check_numbers`);
+- the run directory (`open_run_dir`): config.json, progress.csv, one atomic
+  checkpoint.npz with the Generator's state, exact resume, and an exclusive lock so that
+  two processes never write one run;
+- stopping at the next checkpoint on a signal, and the pace/ETA of a run;
+- `map_chunks`, the thread pool that runs a big pass's row chunks on both cores.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import contextlib
+import csv
+import dataclasses
+import errno
+import fcntl
+import inspect
+import io
+import json
+import math
+import os
+import signal
+import sys
+import tempfile
+import threading
+import time
+import zipfile
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+
+class UserError(Exception):
+    """An error the user caused (bad flag, bad file, wrong environment): one line, exit 2."""
+
+
+# ----------------------------------------------------------------------------------------
+# Files, written atomically: a run killed mid-write keeps the previous file, never half
+# of a new one.
+# ----------------------------------------------------------------------------------------
+
+
+def _write_atomically(path, write) -> None:
+    """Call write(file) on a temporary file beside `path`, then rename it to `path`."""
+    path = Path(path)
+    if path.is_dir():
+        raise UserError(f"{path} is a directory; give a file name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except (FileExistsError, NotADirectoryError):
+        raise UserError(f"cannot write {path}: a parent of it is a file") from None
+    except PermissionError:
+        raise UserError(f"cannot write {path}: permission denied") from None
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)  # mkstemp makes files private; results are meant to be shared
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_arrays(path, arrays: dict[str, np.ndarray]) -> None:
+    """Write an .npz atomically."""
+    _write_atomically(path, lambda f: np.savez(f, **arrays))
+
+
+def write_text(path, text: str) -> None:
+    """Write a text file atomically."""
+    _write_atomically(path, lambda f: f.write(text.encode()))
+
+
+def load_arrays(path) -> dict[str, np.ndarray]:
+    """Every array of an .npz; a missing, truncated or corrupted file is a UserError."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {key: data[key] for key in data.files}
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such file") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
+        raise UserError(f"{path}: not a readable .npz file ({error})") from None
+
+
+# ----------------------------------------------------------------------------------------
+# The command line, made from a hyperparameter dataclass (the CleanRL convention: each
+# field's docstring is its help text).
+# ----------------------------------------------------------------------------------------
+
+
+def field_docstrings(cls) -> dict[str, str]:
+    """The string literal under each dataclass field."""
+    tree = ast.parse(inspect.getsource(cls))
+    body = tree.body[0].body
+    docs = {}
+    for previous, node in zip(body, body[1:], strict=False):
+        if (
+            isinstance(previous, ast.AnnAssign)
+            and isinstance(node, ast.Expr)
+            and isinstance(node.value, ast.Constant)
+            and isinstance(node.value.value, str)
+        ):
+            docs[previous.target.id] = node.value.value
+    return docs
+
+
+def add_dataclass_flags(parser: argparse.ArgumentParser, cls) -> None:
+    """One --flag per dataclass field (inherited fields too), its help the docstring."""
+    docs = {}
+    for klass in reversed(cls.__mro__):
+        if dataclasses.is_dataclass(klass):
+            docs.update(field_docstrings(klass))
+    for f in dataclasses.fields(cls):
+        flag, default = "--" + f.name.replace("_", "-"), f.default
+        if isinstance(default, bool):
+            parser.add_argument(
+                flag, action=argparse.BooleanOptionalAction, default=default, help=docs[f.name]
+            )
+        elif isinstance(default, tuple):
+            parser.add_argument(flag, type=int, nargs="+", default=default, help=docs[f.name])
+        else:
+            parser.add_argument(flag, type=type(default), default=default, help=docs[f.name])
+
+
+def config_from_args(cls, args: argparse.Namespace):
+    """The dataclass `cls` with the parsed flags' values (lists become tuples)."""
+    return cls(
+        **{
+            f.name: tuple(v) if isinstance(v, list) else v
+            for f in dataclasses.fields(cls)
+            for v in [getattr(args, f.name)]
+        }
+    )
+
+
+def flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def check_numbers(config, ranges: dict[str, tuple[float, float, str]]) -> None:
+    """Refuse non-finite numbers anywhere in `config`, and numbers outside `ranges`.
+
+    ranges: field -> (low, high, kind) with kind "[]" (both ends allowed), "(]", "[)"
+    or "()". A tuple field (layer sizes) has every element checked.
+    """
+    for f in dataclasses.fields(config):
+        values = getattr(config, f.name)
+        for value in values if isinstance(values, tuple) else (values,):
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                continue
+            if not math.isfinite(value):
+                raise UserError(f"{flag(f.name)} must be a finite number, got {value}")
+            if f.name not in ranges:
+                continue
+            low, high, kind = ranges[f.name]
+            above = value >= low if kind[0] == "[" else value > low
+            below = value <= high if kind[1] == "]" else value < high
+            if not (above and below):
+                raise UserError(f"{flag(f.name)} must lie in {kind[0]}{low:g}, {high:g}{kind[1]}")
+
+
+class CommandLineParser(argparse.ArgumentParser):
+    """argparse, but a bad flag ends in one line on stderr and exit status 2 (no usage
+    dump), like every other error a user can cause."""
+
+    def error(self, message: str):
+        print(f"error: {message} (see {self.prog} --help)", file=sys.stderr)
+        sys.exit(2)
+
+
+# ----------------------------------------------------------------------------------------
+# The run directory: config.json, progress.csv and checkpoint.npz, under a lock.
+# ----------------------------------------------------------------------------------------
+
+CONFIG, PROGRESS, CHECKPOINT, LOCK = "config.json", "progress.csv", "checkpoint.npz", ".lock"
+_held_locks: dict[Path, int] = {}
+
+
+def _lock(run_dir: Path) -> None:
+    """An exclusive lock on run_dir for the rest of this process's life (flock: the kernel
+    drops it when the process dies, so a killed run never blocks its own resume)."""
+    key = run_dir.resolve()
+    if key in _held_locks:
+        return
+    try:
+        fd = os.open(run_dir / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as error:
+        raise UserError(f"cannot use run directory {run_dir}: {error.strerror}") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise UserError(f"{run_dir} is in use by another running process") from None
+    _held_locks[key] = fd
+
+
+def release(run_dir) -> None:
+    """Give up this process's lock on run_dir (tests; a process exiting drops it anyway)."""
+    fd = _held_locks.pop(Path(run_dir).resolve(), None)
+    if fd is not None:
+        os.close(fd)
+
+
+def open_run_dir(run_dir, resume: bool) -> Path:
+    """Check, create and lock a run directory.
+
+    A fresh run refuses a directory that holds a checkpoint; a resume needs config.json,
+    progress.csv and checkpoint.npz. Either way the directory is locked first, so a
+    second process on it (started at the same instant, or a --resume of a live run)
+    stops here with one line, before it writes anything.
+    """
+    run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise UserError(f"--run-dir {run_dir} is a file, not a directory")
+    if resume and not run_dir.is_dir():
+        raise UserError(f"{run_dir} holds no run")
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise UserError(f"--run-dir {run_dir} lies under a file") from None
+    except PermissionError:
+        raise UserError(f"--run-dir {run_dir}: permission denied") from None
+    if not os.access(run_dir, os.W_OK):
+        raise UserError(f"--run-dir {run_dir} is not writable")
+    _lock(run_dir)
+    if resume:
+        for name in (CONFIG, PROGRESS, CHECKPOINT):
+            if not (run_dir / name).is_file():
+                raise UserError(f"{run_dir} cannot be resumed: its {name} is missing")
+    elif (run_dir / CHECKPOINT).exists():
+        raise UserError(
+            f"{run_dir} already holds a run; continue it with --resume {run_dir}"
+            " or choose another --run-dir"
+        )
+    return run_dir
+
+
+def write_config(run_dir, settings: dict) -> None:
+    write_text(Path(run_dir) / CONFIG, json.dumps(settings, indent=2) + "\n")
+
+
+def read_config(run_dir) -> dict:
+    try:
+        return json.loads((Path(run_dir) / CONFIG).read_text())
+    except (OSError, ValueError):
+        raise UserError(f"{run_dir} holds no run ({CONFIG} missing or unreadable)") from None
+
+
+def resumed_settings(saved: dict, given: dict, may_change: tuple[str, ...]) -> dict:
+    """A resumed run's settings: the saved ones, with the flags given on the command line
+    that a resume may change (`may_change`, such as the budget). Any other flag given
+    with a value other than the saved one is refused: silently ignoring it would run
+    something the user did not ask for."""
+    for name, value in given.items():
+        value = list(value) if isinstance(value, tuple) else value
+        if name in may_change or saved.get(name) == value:
+            continue
+        allowed = ", ".join(flag(n) for n in may_change) or "none"
+        raise UserError(
+            f"{flag(name)} conflicts with the saved run ({saved.get(name)!r});"
+            f" a resume may change only: {allowed}"
+        )
+    return {**saved, **{k: v for k, v in given.items() if k in may_change}}
+
+
+def save_checkpoint(run_dir, arrays: dict[str, np.ndarray], rng, progress, progress_text: str):
+    """checkpoint.npz (the arrays, the Generator's state, the counters and rows of the
+    `progress` dataclass), written atomically; then progress.csv. One file holds
+    everything, so a kill between the two writes leaves a consistent run."""
+    counters = {k: v for k, v in dataclasses.asdict(progress).items() if k != "rows"}
+    save_arrays(
+        Path(run_dir) / CHECKPOINT,
+        {
+            **arrays,
+            "rng": np.array(json.dumps(rng.bit_generator.state)),
+            "counters": np.array(json.dumps(counters)),
+            "rows": np.array(json.dumps(progress.rows)),
+        },
+    )
+    write_text(Path(run_dir) / PROGRESS, progress_text)
+
+
+def load_checkpoint(run_dir, rng) -> tuple[dict[str, np.ndarray], dict, list[dict]]:
+    """(arrays, counters, rows) of save_checkpoint's file; restores `rng` in place.
+    progress.csv may hold rows written after the checkpoint: the checkpoint's own copy
+    of the rows is the truth, and a resumed run rewrites the file from it."""
+    path = Path(run_dir) / CHECKPOINT
+    arrays = load_arrays(path)
+    try:
+        state = json.loads(str(arrays.pop("rng")))
+        counters = json.loads(str(arrays.pop("counters")))
+        rows = json.loads(str(arrays.pop("rows")))
+        rng.bit_generator.state = state
+    except (KeyError, ValueError, TypeError) as error:
+        raise UserError(f"{path}: not a checkpoint of this version ({error})") from None
+    return arrays, counters, rows
+
+
+def restore_arrays(path, load: Callable[[], None]) -> None:
+    """Run `load()` (copying a checkpoint's arrays into networks); a missing key or a
+    wrong shape means the file is from another version or another run."""
+    try:
+        load()
+    except (KeyError, ValueError) as error:
+        raise UserError(f"{path}: does not fit this run ({error})") from None
+
+
+def rounded(value):
+    """Counts as they are, measurements to 5 significant digits."""
+    return value if isinstance(value, int) else float(f"{value:.5g}")
+
+
+def progress_csv(rows: list[dict], fields) -> str:
+    """`fields`, then any other column the rows hold, in their order."""
+    fields = list(fields)
+    fields += [name for name in (rows[0] if rows else {}) if name not in fields]
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=fields, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    return out.getvalue()
+
+
+class Pace:
+    """Interactions per second since this process started or resumed the run: a resumed
+    run's earlier sessions may have run on a faster or slower machine, so their pace is
+    not used for the log's rate and ETA."""
+
+    def __init__(self, interactions: int, now: float | None = None):
+        self.start = time.perf_counter() if now is None else now
+        self.interactions = interactions
+
+    def rate(self, interactions: int, now: float) -> float:
+        return (interactions - self.interactions) / max(now - self.start, 1e-9)
+
+    def eta_seconds(self, remaining: int, interactions: int, now: float) -> float:
+        """Seconds left for `remaining` interactions; never negative (the last episode may
+        run past the budget), NaN before this process has done any."""
+        done = interactions - self.interactions
+        if done <= 0:
+            return float("nan")
+        return max(remaining, 0) * (now - self.start) / done
+
+
+# ----------------------------------------------------------------------------------------
+# Stopping a run at its next checkpoint.
+# ----------------------------------------------------------------------------------------
+
+_stop = threading.Event()
+
+
+@contextlib.contextmanager
+def stop_at_next_checkpoint():
+    """While active, SIGINT (Ctrl-C) and SIGTERM (`kill`) ask the training loop to stop at
+    its next checkpoint point: the loop sees `checkpoint_due`, writes its checkpoint and
+    raises KeyboardInterrupt (`stop_if_requested`), so nothing since the last periodic
+    checkpoint is lost. A second signal stops at once. A signal the process was started
+    to ignore stays ignored (a shell's `cmd &` ignores SIGINT); outside the main thread
+    nothing is installed."""
+    _stop.clear()
+    installed = {}
+
+    def request(signum, frame):
+        if _stop.is_set():
+            raise KeyboardInterrupt
+        _stop.set()
+        print("stopping at the next checkpoint (signal again to stop at once)", file=sys.stderr)
+
+    if threading.current_thread() is threading.main_thread():
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            if signal.getsignal(signum) is not signal.SIG_IGN:
+                installed[signum] = signal.signal(signum, request)
+    try:
+        yield
+    finally:
+        for signum, handler in installed.items():
+            signal.signal(signum, handler)
+        _stop.clear()
+
+
+def checkpoint_due(seconds_since_last: float, every: float) -> bool:
+    """A periodic checkpoint is due, or a signal asked the run to stop (then the loop
+    checkpoints and calls stop_if_requested)."""
+    return seconds_since_last >= every or _stop.is_set()
+
+
+def stop_if_requested() -> None:
+    """After a checkpoint: end the run if a signal asked for it; `run_cli` reports the
+    KeyboardInterrupt as "continue with --resume"."""
+    if _stop.is_set():
+        raise KeyboardInterrupt
+
+
+def run_cli(body: Callable[[], object]) -> int:
+    """A trainer's main: body() with BLAS on one thread (the threads come from
+    map_chunks) and signals stopping at the next checkpoint; errors a user can cause
+    become one line on stderr and exit status 2."""
+    from threadpoolctl import threadpool_limits
+
+    try:
+        with threadpool_limits(limits=1, user_api="blas"), stop_at_next_checkpoint():
+            body()
+    except UserError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted; continue with --resume", file=sys.stderr)
+        return 130
+    except OSError as error:
+        if error.errno not in (errno.ENOSPC, errno.EDQUOT):
+            raise
+        where = f" writing {error.filename}" if error.filename else ""
+        print(
+            f"error: disk full{where}; the last checkpoint is kept, free space and --resume",
+            file=sys.stderr,
+        )
+        return 2
+    return 0
+
+
+# ----------------------------------------------------------------------------------------
+# Process set-up for the big passes: row chunks on both cores, and malloc that reuses.
+# ----------------------------------------------------------------------------------------
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def map_chunks(fn, chunks) -> list:
+    """[fn(c) for c in chunks], on a thread pool with one thread per core.
+
+    NumPy releases the GIL inside matrix products and ufuncs on large arrays, so
+    threads run chunks in parallel; `run_cli` limits BLAS to one thread meanwhile, so
+    that the two levels of threading do not fight over the cores.
+    """
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=os.cpu_count() or 1)
+    return list(_POOL.map(fn, chunks))
+
+
+def reuse_freed_memory() -> None:
+    """Ask glibc's malloc to keep freed memory for reuse instead of returning it.
+
+    By default, arrays above 128 KB-32 MB are mapped fresh from the kernel and unmapped
+    when freed, so every (1024, 500) float32 temporary of the policy step starts with
+    500 page faults: about 12 000 per update, 10-20 % of its time on 2 cores. With these
+    settings the same memory is reused. Linux/glibc only; elsewhere this does nothing.
+    """
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("c")
+    if not name:
+        return
+    try:
+        libc = ctypes.CDLL(name)
+        m_trim_threshold, m_mmap_threshold = -1, -3
+        libc.mallopt(m_mmap_threshold, 512 * 2**20)  # allocations below 512 MB: heap
+        libc.mallopt(m_trim_threshold, 1024 * 2**20)  # keep up to 1 GB of freed heap
+    except (OSError, AttributeError):
+        pass
+
+
+def given_flags(parser: argparse.ArgumentParser, argv) -> argparse.Namespace:
+    """Only the flags that `argv` gives (every default suppressed)."""
+    parser.set_defaults(**{action.dest: argparse.SUPPRESS for action in parser._actions})
+    return parser.parse_args(argv)
