@@ -34,6 +34,7 @@ import time
 import zipfile
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -333,6 +334,51 @@ def progress_csv(rows: list[dict], fields) -> str:
     return out.getvalue()
 
 
+@dataclass
+class Progress:
+    """A run's counters and progress rows, restored exactly by its checkpoint."""
+
+    interactions: int = 0
+    updates: int = 0
+    episodes: int = 0
+    eval_rounds: int = 0
+    wall_seconds: float = 0.0
+    best_eval_return: float = -math.inf
+    recent_returns: list[float] = field(default_factory=list)  # since the last evaluation
+    last_stats: dict[str, float] = field(default_factory=dict)  # of the latest update
+    rows: list[dict] = field(default_factory=list)
+
+    def evaluation_due(self, every: int, total: int, counter: str = "interactions") -> bool:
+        """At 0, at the first episode end past each `every`, and at the end, once: a
+        finished run that is resumed adds no second final row."""
+        count = getattr(self, counter)
+        if self.rows and self.rows[-1][counter] == count:
+            return False
+        return count >= self.eval_rounds * every or count >= total
+
+    def record(self, returns: np.ndarray, score: float, measured: dict, fields, started) -> dict:
+        """Append an evaluation's row: the counters, the evaluation's mean return, its
+        std and normalised score, the mean training return since the last row, and the
+        `measured` values of `fields` ("" where a value does not exist yet)."""
+        self.eval_rounds += 1
+        self.wall_seconds = time.perf_counter() - started
+        recent = self.recent_returns
+        row = {
+            "interactions": self.interactions,
+            "wall_seconds": round(self.wall_seconds, 1),
+            "updates": self.updates,
+            "episodes": self.episodes,
+            "eval_return_mean": round(float(returns.mean()), 2),
+            "eval_return_std": round(float(returns.std()), 2),
+            "normalized_score": round(score, 4),
+            "train_return": round(float(np.mean(recent)), 2) if recent else "",
+        }
+        row |= {k: rounded(measured[k]) if k in measured else "" for k in fields if k not in row}
+        self.rows.append(row)
+        recent.clear()
+        return row
+
+
 class Pace:
     """Interactions per second since this process started or resumed the run: a resumed
     run's earlier sessions may have run on a faster or slower machine, so their pace is
@@ -435,18 +481,23 @@ def run_cli(body: Callable[[], object]) -> int:
 # ----------------------------------------------------------------------------------------
 
 _POOL: ThreadPoolExecutor | None = None
+# Rows per chunk of the big passes. For the policy step's 8 192 rows on 2 cores: 167,
+# 140, 109 and 98 ms at 128, 256, 512 and 1024 rows per chunk, 158 ms unchunked with
+# BLAS on both cores (small chunks stay in cache, large ones pay less Python overhead).
+CHUNK_ROWS = 1024
 
 
-def map_chunks(fn, chunks) -> list:
-    """[fn(c) for c in chunks], on a thread pool with one thread per core.
-
-    NumPy releases the GIL inside matrix products and ufuncs on large arrays, so
-    threads run chunks in parallel; `run_cli` limits BLAS to one thread meanwhile, so
-    that the two levels of threading do not fight over the cores.
-    """
+def map_row_chunks(fn, n_states: int, rows_per_state: int) -> list:
+    """[fn(chunk) for chunk in slices of states], on a thread pool with one thread per
+    core; each chunk's rows (states x rows_per_state) fill about CHUNK_ROWS, and there is
+    at least one chunk per core. NumPy releases the GIL inside matrix products and large
+    ufuncs, so threads run chunks in parallel; `run_cli` limits BLAS to one thread."""
     global _POOL
+    cores = os.cpu_count() or 1
     if _POOL is None:
-        _POOL = ThreadPoolExecutor(max_workers=os.cpu_count() or 1)
+        _POOL = ThreadPoolExecutor(max_workers=cores)
+    per_chunk = max(1, min(CHUNK_ROWS // rows_per_state, -(-n_states // cores)))
+    chunks = [slice(lo, min(n_states, lo + per_chunk)) for lo in range(0, n_states, per_chunk)]
     return list(_POOL.map(fn, chunks))
 
 

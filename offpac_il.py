@@ -109,12 +109,8 @@ class Config:
 
 
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
-PAPER_SETTINGS = {
-    "policy_lr": 1e-4,
-    "critic_lr": 1e-3,
-    "policy_expert_states": 0.0,
-    "policy_average": 0.0,
-}
+PAPER_SETTINGS = {"policy_lr": 1e-4, "critic_lr": 1e-3, "policy_expert_states": 0.0}
+PAPER_SETTINGS |= {"policy_average": 0.0}
 
 
 # ----------------------------------------------------------------------------------------
@@ -147,7 +143,7 @@ def critic_targets(
         log_q = nets.log_sigmoid(cache.logits).reshape(-1, k)  # (C, k): log q'(s', a'_k)
         return np.exp(config.gamma * log_q).mean(axis=1)  # (C,): mean_k q'^gamma
 
-    t = np.concatenate(harness.map_chunks(chunk_targets, chunks_of(len(noise) // k, k)))
+    t = np.concatenate(harness.map_row_chunks(chunk_targets, len(noise) // k, k))
     if config.termination == "zero":
         t[batch.terminal] = 0.0
     t[n_expert:] *= 0.5  # the "/2" of Eq. (17)-(18): replay pairs earn r = 1/2
@@ -173,6 +169,13 @@ def critic_loss_and_grads(critic: nets.MLP, batch: Triplets, t: np.ndarray, n_ex
     return float(loss), grads, cache
 
 
+def expert_then_replay(expert_batch: Triplets, replay_batch: Triplets) -> Triplets:
+    fields = (f.name for f in dataclasses.fields(Triplets))
+    return Triplets(
+        *(np.concatenate([getattr(expert_batch, f), getattr(replay_batch, f)]) for f in fields)
+    )
+
+
 def critic_step(
     learner: Learner,
     expert_batch: Triplets,
@@ -183,14 +186,9 @@ def critic_step(
     targets: Callable = critic_targets,
 ) -> dict[str, float]:
     """Alg. 1, lines 11-12: one RMSProp step on objective (18), then the target update
-    nu' <- tau nu + (1 - tau) nu' (Appendix B). `targets` is where Ours+IRL hooks in."""
+    nu' <- tau nu + (1 - tau) nu' (Appendix B). Ours+IRL passes its own `targets`."""
     n = len(expert_batch.states)
-    batch = Triplets(  # expert rows first, then replay rows: (2n, ...)
-        *(
-            np.concatenate([getattr(expert_batch, f.name), getattr(replay_batch, f.name)])
-            for f in dataclasses.fields(Triplets)
-        )
-    )
+    batch = expert_then_replay(expert_batch, replay_batch)  # (2n, ...)
     t, stats = targets(learner, batch, n, config, rng)
     loss, grads, cache = critic_loss_and_grads(learner.critic, batch, t[:, None], n)
     learner.critic_optimizer.step(learner.critic.params, grads, lr)
@@ -238,7 +236,7 @@ def policy_loss_and_grads(learner: Learner, states: np.ndarray, noise: np.ndarra
         z = noise[rows.start * z_per_state : rows.stop * z_per_state]
         return policy_gradient(learner, states[rows], z, len(noise))
 
-    parts = harness.map_chunks(chunk, chunks_of(len(states), z_per_state))
+    parts = harness.map_row_chunks(chunk, len(states), z_per_state)
     grads = {
         name: sum(p[0][name] for p in parts[1:]) + parts[0][0][name] for name in parts[0][0]
     }  # the chunks' partial sums, in a fixed order
@@ -274,20 +272,6 @@ def policy_step(
     learner.policy_optimizer.step(learner.policy.net.params, grads, lr)
     stats["policy_grad_norm"] = math.sqrt(sum(float((g * g).sum()) for g in grads.values()))
     return stats
-
-
-# Rows per chunk of the big passes. For the policy step's 8 192 rows on 2 cores: 167,
-# 140, 109 and 98 ms at 128, 256, 512 and 1024 rows per chunk, 158 ms unchunked with
-# BLAS on both cores (small chunks stay in cache, large ones pay less Python overhead).
-CHUNK_ROWS = 1024
-
-
-def chunks_of(n_states: int, rows_per_state: int) -> list[slice]:
-    """Slices of states whose rows (states x noise samples) fill about CHUNK_ROWS each,
-    at least one chunk per core."""
-    cores = harness.os.cpu_count() or 1
-    per_chunk = max(1, min(CHUNK_ROWS // rows_per_state, -(-n_states // cores)))
-    return [slice(lo, min(n_states, lo + per_chunk)) for lo in range(0, n_states, per_chunk)]
 
 
 # ----------------------------------------------------------------------------------------
@@ -428,30 +412,23 @@ class Learner:
         """This learner acting with the averaged PN."""
         return dataclasses.replace(self, policy=self.average_policy)
 
+    def parts(self) -> dict:
+        """Everything a checkpoint holds, by name (each part has state/load_state)."""
+        parts = {"policy": self.policy, "critic": self.critic, "target_critic": self.target_critic}
+        parts |= {"policy_rmsprop": self.policy_optimizer, "critic_rmsprop": self.critic_optimizer}
+        parts |= self.extra_state
+        return parts | ({"average_policy": self.average_policy} if self.average_policy else {})
+
     def state(self) -> dict[str, np.ndarray]:
-        arrays = {
-            **self.policy.state("policy"),
-            **self.critic.state("critic"),
-            **self.target_critic.state("target_critic"),
-            **self.policy_optimizer.state("policy_rmsprop"),
-            **self.critic_optimizer.state("critic_rmsprop"),
+        return {
+            key: value
+            for name, part in self.parts().items()
+            for key, value in part.state(name).items()
         }
-        for name, part in self.extra_state.items():
-            arrays.update(part.state(name))
-        if self.average_policy is not None:
-            arrays.update(self.average_policy.state("average_policy"))
-        return arrays
 
     def load_state(self, arrays) -> None:
-        self.policy.load_state(arrays, "policy")
-        self.critic.load_state(arrays, "critic")
-        self.target_critic.load_state(arrays, "target_critic")
-        self.policy_optimizer.load_state(arrays, "policy_rmsprop")
-        self.critic_optimizer.load_state(arrays, "critic_rmsprop")
-        for name, part in self.extra_state.items():
+        for name, part in self.parts().items():
             part.load_state(arrays, name)
-        if self.average_policy is not None:
-            self.average_policy.load_state(arrays, "average_policy")
 
 
 # ----------------------------------------------------------------------------------------
@@ -463,15 +440,16 @@ class Learner:
 class Variant:
     """Where an ablation changes Algorithm 1 (lab/ablations.py); the defaults are Ours.
 
-    make_policy: the policy object (BoundedPolicy's methods); make_extras(learner, ...):
-    networks added to the learner (Ours+IRL's reward); targets: the critic's targets
-    (Ours+IRL: objective 15); after_updates(replay): once an episode's updates are done
-    (Ours+OnP empties the buffer); diagnostics(learner, states): extra columns.
+    make_policy: the policy object (BoundedPolicy's methods: Ours+GP, Ours+DP);
+    make_extras(learner, ...): what is added to the learner after QN (Ours+IRL's reward
+    network, Ours+DP's z_0); critic_step: Ours+IRL's reward step and objective (15);
+    after_updates(replay): after an episode's updates (Ours+OnP empties the buffer);
+    diagnostics(learner, states) and progress_fields: the variant's own columns.
     """
 
     make_policy: Callable = BoundedPolicy.create
     make_extras: Callable = lambda learner, state_dim, action_dim, config, rng: None
-    targets: Callable = critic_targets
+    critic_step: Callable = critic_step
     after_updates: Callable = lambda replay: None
     diagnostics: Callable = lambda learner, states: {}
     progress_fields: tuple[str, ...] = ()
@@ -500,9 +478,7 @@ def update(
     policy_lr = nets.linear_decay(config.policy_lr, interactions, config.total_steps)
     expert_batch = expert_buffer.sample(rng, config.batch_size)
     replay_batch = replay.sample(rng, config.batch_size)
-    stats = critic_step(
-        learner, expert_batch, replay_batch, config, critic_lr, rng, variant.targets
-    )
+    stats = variant.critic_step(learner, expert_batch, replay_batch, config, critic_lr, rng)
     states = policy_states(expert_buffer, replay, config, rng)
     stats.update(policy_step(learner, states, config, policy_lr, rng))
     if learner.average_policy is not None:
@@ -667,23 +643,7 @@ PROGRESS_FIELDS = (
 )
 # The averaged PN's evaluation, on the same episode seeds as PN's (--policy-average).
 AVERAGE_FIELDS = ("average_return_mean", "average_score", "average_falls")
-MEASURED = PROGRESS_FIELDS.index("q_expert")
 SNAPSHOTS = "policies"  # the policy of each evaluation, named by its interactions
-
-
-@dataclass
-class Progress:
-    """Counters that a checkpoint must restore, besides networks, buffer and Generator."""
-
-    interactions: int = 0
-    updates: int = 0
-    episodes: int = 0
-    eval_rounds: int = 0
-    wall_seconds: float = 0.0
-    best_eval_return: float = -math.inf
-    recent_returns: list[float] = field(default_factory=list)  # since the last evaluation
-    last_stats: dict[str, float] = field(default_factory=dict)  # of the latest update
-    rows: list[dict] = field(default_factory=list)
 
 
 def snapshot_path(run_dir: Path, interactions: int) -> Path:
@@ -736,7 +696,7 @@ def prepare(config: Config, env, rng: np.random.Generator, variant: Variant = OU
     return spaces, expert_buffer, learner, replay, demo_path
 
 
-def load_checkpoint(run_dir, learner: Learner, replay: ReplayBuffer, rng) -> Progress:
+def load_checkpoint(run_dir, learner: Learner, replay: ReplayBuffer, rng) -> harness.Progress:
     arrays, counters, rows = harness.load_checkpoint(run_dir, rng)
 
     def load() -> None:
@@ -744,11 +704,11 @@ def load_checkpoint(run_dir, learner: Learner, replay: ReplayBuffer, rng) -> Pro
         replay.load_state(arrays)
 
     harness.restore_arrays(Path(run_dir) / harness.CHECKPOINT, load)
-    return Progress(**counters, rows=rows)
+    return harness.Progress(**counters, rows=rows)
 
 
 def save_checkpoint(
-    run_dir, learner: Learner, replay: ReplayBuffer, progress: Progress, rng
+    run_dir, learner: Learner, replay: ReplayBuffer, progress: harness.Progress, rng
 ) -> None:
     text = harness.progress_csv(progress.rows, PROGRESS_FIELDS)
     harness.save_checkpoint(run_dir, {**learner.state(), **replay.state()}, rng, progress, text)
@@ -793,7 +753,7 @@ def check_finite(learner: Learner, replay: ReplayBuffer, interactions: int) -> N
             raise UserError(f"{name} became non-finite before {interactions} interactions")
 
 
-def train(config: Config, resume: bool = False, variant: Variant = OURS) -> Progress:
+def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harness.Progress:
     """Algorithm 1, with evaluation, logging and checkpoints around it."""
     check_config(config)
     run_dir = harness.open_run_dir(config.run_dir or f"runs/{config.env}-seed{config.seed}", resume)
@@ -806,7 +766,7 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> Prog
         progress = load_checkpoint(run_dir, learner, replay, rng)
         print(f"resumed {run_dir} at {progress.interactions} interactions", flush=True)
     else:
-        progress = Progress()
+        progress = harness.Progress()
         harness.write_config(run_dir, dataclasses.asdict(config))
         print(f"run directory: {run_dir}", flush=True)
     fields = PROGRESS_FIELDS + variant.progress_fields
@@ -816,14 +776,8 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> Prog
     last_checkpoint = last_log = time.perf_counter()
     pace = harness.Pace(progress.interactions)
     while True:
-        recent_returns, stats = progress.recent_returns, progress.last_stats
-        # Evaluate at 0 and every eval_every interactions (at the episode end that crosses
-        # it), and at the end; a finished run that is resumed adds no second final row.
-        evaluated_here = (
-            bool(progress.rows) and progress.rows[-1]["interactions"] == progress.interactions
-        )
-        due = progress.interactions >= progress.eval_rounds * config.eval_every
-        if not evaluated_here and (due or progress.interactions >= config.total_steps):
+        stats = progress.last_stats
+        if progress.evaluation_due(config.eval_every, config.total_steps):
             check_finite(learner, replay, progress.interactions)
             returns, falls = evaluate(eval_env, learner, spaces, config, progress.eval_rounds)
             diagnostics_rng = np.random.default_rng([config.seed, 2, progress.eval_rounds])
@@ -839,26 +793,8 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> Prog
                     "average_score": expert.normalized_score(average_return, references),
                     "average_falls": average_falls,
                 }
-            progress.eval_rounds += 1
-            progress.wall_seconds = time.perf_counter() - started
-            row = {
-                "interactions": progress.interactions,
-                "wall_seconds": round(progress.wall_seconds, 1),
-                "updates": progress.updates,
-                "episodes": progress.episodes,
-                "eval_return_mean": round(float(returns.mean()), 2),
-                "eval_return_std": round(float(returns.std()), 2),
-                "normalized_score": round(
-                    expert.normalized_score(float(returns.mean()), references), 4
-                ),
-                "train_return": round(float(np.mean(recent_returns)), 2) if recent_returns else "",
-                **{
-                    k: harness.rounded(measured[k]) if k in measured else ""
-                    for k in fields[MEASURED:]
-                },
-            }
-            progress.rows.append(row)
-            recent_returns.clear()
+            score = expert.normalized_score(float(returns.mean()), references)
+            row = progress.record(returns, score, measured, fields, started)
             policy = learner.policy.state("policy")
             harness.save_arrays(snapshot_path(run_dir, progress.interactions), policy)
             if returns.mean() > progress.best_eval_return:
@@ -888,7 +824,7 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> Prog
         episode_return, length = run_episode(
             env, learner, spaces, rng, seed, replay, config.exploration_noise
         )
-        recent_returns.append(episode_return)
+        progress.recent_returns.append(episode_return)
         progress.episodes += 1
         # Lines 10-15: as many updates as the episode had steps.
         update_start = time.perf_counter()
@@ -975,13 +911,13 @@ def config_from_command_line(argv, config_class=Config, description: str = ""):
     return saved_config(settings, config_class), True
 
 
-def main(argv: list[str] | None = None, variant: Variant = OURS, config_class=Config) -> int:
+def main(argv: list[str] | None = None, config_class=Config, variant_of=lambda config: OURS) -> int:
     argv = sys.argv[1:] if argv is None else argv
     harness.reuse_freed_memory()
 
     def body() -> None:
         config, resume = config_from_command_line(argv, config_class)
-        train(config, resume, variant)
+        train(config, resume, variant_of(config))
 
     return harness.run_cli(body)
 
