@@ -356,12 +356,11 @@ class Progress:
             return False
         return count >= self.eval_rounds * every or count >= total
 
-    def record(self, returns: np.ndarray, score: float, measured: dict, fields, started) -> dict:
+    def record(self, returns: np.ndarray, score: float, measured: dict, fields) -> dict:
         """Append an evaluation's row: the counters, the evaluation's mean return, its
         std and normalised score, the mean training return since the last row, and the
         `measured` values of `fields` ("" where a value does not exist yet)."""
         self.eval_rounds += 1
-        self.wall_seconds = time.perf_counter() - started
         recent = self.recent_returns
         row = {
             "interactions": self.interactions,
@@ -379,25 +378,42 @@ class Progress:
         return row
 
 
-class Pace:
-    """Interactions per second since this process started or resumed the run: a resumed
-    run's earlier sessions may have run on a faster or slower machine, so their pace is
-    not used for the log's rate and ETA."""
+class Clock:
+    """A run's wall time (carried over a resume), when to log and when to checkpoint, and
+    the pace since this process started: a resumed run's earlier sessions may have run
+    on a faster or slower machine, so their pace is not used for the ETA."""
 
-    def __init__(self, interactions: int, now: float | None = None):
-        self.start = time.perf_counter() if now is None else now
-        self.interactions = interactions
+    def __init__(self, progress: Progress, checkpoint_every: float, log_every: float):
+        self.progress, self.checkpoint_every, self.log_every = progress, checkpoint_every, log_every
+        self.start = self.last_log = self.last_checkpoint = time.perf_counter()
+        self.start_interactions = progress.interactions
+        self.started = self.start - progress.wall_seconds
 
-    def rate(self, interactions: int, now: float) -> float:
-        return (interactions - self.interactions) / max(now - self.start, 1e-9)
+    def tick(self) -> None:
+        self.progress.wall_seconds = time.perf_counter() - self.started
 
-    def eta_seconds(self, remaining: int, interactions: int, now: float) -> float:
-        """Seconds left for `remaining` interactions; never negative (the last episode may
+    def log_due(self) -> bool:
+        due = time.perf_counter() - self.last_log >= self.log_every
+        if due:
+            self.last_log = time.perf_counter()
+        return due
+
+    def checkpoint_due(self) -> bool:
+        """A periodic checkpoint is due, or a signal asked the run to stop (then the loop
+        checkpoints and calls stop_if_requested)."""
+        return time.perf_counter() - self.last_checkpoint >= self.checkpoint_every or _stop.is_set()
+
+    def checkpointed(self) -> None:
+        self.last_checkpoint = time.perf_counter()
+
+    def eta_minutes(self, total: int) -> float:
+        """Minutes left until `total` interactions; never negative (the last episode may
         run past the budget), NaN before this process has done any."""
-        done = interactions - self.interactions
+        done = self.progress.interactions - self.start_interactions
         if done <= 0:
             return float("nan")
-        return max(remaining, 0) * (now - self.start) / done
+        left = max(total - self.progress.interactions, 0)
+        return left * (time.perf_counter() - self.start) / done / 60
 
 
 # ----------------------------------------------------------------------------------------
@@ -410,7 +426,7 @@ _stop = threading.Event()
 @contextlib.contextmanager
 def stop_at_next_checkpoint():
     """While active, SIGINT (Ctrl-C) and SIGTERM (`kill`) ask the training loop to stop at
-    its next checkpoint point: the loop sees `checkpoint_due`, writes its checkpoint and
+    its next checkpoint point: the loop sees `Clock.checkpoint_due`, writes its checkpoint and
     raises KeyboardInterrupt (`stop_if_requested`), so nothing since the last periodic
     checkpoint is lost. A second signal stops at once. A signal the process was started
     to ignore stays ignored (a shell's `cmd &` ignores SIGINT); outside the main thread
@@ -434,12 +450,6 @@ def stop_at_next_checkpoint():
         for signum, handler in installed.items():
             signal.signal(signum, handler)
         _stop.clear()
-
-
-def checkpoint_due(seconds_since_last: float, every: float) -> bool:
-    """A periodic checkpoint is due, or a signal asked the run to stop (then the loop
-    checkpoints and calls stop_if_requested)."""
-    return seconds_since_last >= every or _stop.is_set()
 
 
 def stop_if_requested() -> None:

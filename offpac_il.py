@@ -772,9 +772,7 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
     fields = PROGRESS_FIELDS + variant.progress_fields
     fields += AVERAGE_FIELDS if learner.average_policy is not None else ()
 
-    started = time.perf_counter() - progress.wall_seconds
-    last_checkpoint = last_log = time.perf_counter()
-    pace = harness.Pace(progress.interactions)
+    clock = harness.Clock(progress, config.checkpoint_every, config.log_every)
     while True:
         stats = progress.last_stats
         if progress.evaluation_due(config.eval_every, config.total_steps):
@@ -794,7 +792,8 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
                     "average_falls": average_falls,
                 }
             score = expert.normalized_score(float(returns.mean()), references)
-            row = progress.record(returns, score, measured, fields, started)
+            clock.tick()
+            row = progress.record(returns, score, measured, fields)
             policy = learner.policy.state("policy")
             harness.save_arrays(snapshot_path(run_dir, progress.interactions), policy)
             if returns.mean() > progress.best_eval_return:
@@ -815,7 +814,7 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
                 flush=True,
             )
             save_checkpoint(run_dir, learner, replay, progress, rng)
-            last_checkpoint = time.perf_counter()
+            clock.checkpointed()
         if progress.interactions >= config.total_steps:
             break
 
@@ -837,23 +836,19 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
         update_seconds = time.perf_counter() - update_start
         progress.interactions += length
 
-        now = time.perf_counter()
-        progress.wall_seconds = now - started
-        if now - last_log >= config.log_every:
-            eta = pace.eta_seconds(
-                config.total_steps - progress.interactions, progress.interactions, now
-            )
+        clock.tick()
+        if clock.log_due():
             score = expert.normalized_score(episode_return, references)
             print(
                 f"train {progress.interactions:>8d} steps  return {episode_return:8.1f}"
                 f" ({length:4d} steps)  score {score:6.3f}"
-                f"  {length / max(update_seconds, 1e-9):5.1f} updates/s  ETA {eta / 60:6.1f} min",
+                f"  {length / max(update_seconds, 1e-9):5.1f} updates/s"
+                f"  ETA {clock.eta_minutes(config.total_steps):6.1f} min",
                 flush=True,
             )
-            last_log = now
-        if harness.checkpoint_due(now - last_checkpoint, config.checkpoint_every):
+        if clock.checkpoint_due():
             save_checkpoint(run_dir, learner, replay, progress, rng)
-            last_checkpoint = now
+            clock.checkpointed()
             harness.stop_if_requested()
 
     harness.save_arrays(run_dir / "policy_final.npz", learner.policy.state("policy"))
