@@ -181,6 +181,55 @@ class CommandLineParser(argparse.ArgumentParser):
         sys.exit(2)
 
 
+def config_from_command_line(argv, config_class, description, paper: dict, may_change):
+    """(config, resume) from a trainer's command line: one flag per `config_class` field,
+    `--paper` (the `paper` values become the defaults; flags given still win) and
+    `--resume RUN_DIR` (the saved settings, with only the flags in `may_change` given
+    anew; any other flag given must agree with the saved run)."""
+    parser = CommandLineParser(
+        description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
+    add_dataclass_flags(parser, config_class)
+    if paper:
+        settings = ", ".join(f"{flag(k)} {v:g}" for k, v in paper.items())
+        parser.add_argument(
+            "--paper",
+            action="store_true",
+            help=f"the paper's values where the defaults deviate ({settings}); flags given win",
+        )
+    parser.add_argument(
+        "--resume",
+        metavar="RUN_DIR",
+        default="",
+        help="continue the run in RUN_DIR from its last checkpoint with its saved settings;"
+        f" only {', '.join(map(flag, may_change)) or 'no flag'} may be given anew",
+    )
+    args = parser.parse_args(argv)
+    if getattr(args, "paper", False):
+        parser.set_defaults(**paper)
+        args = parser.parse_args(argv)
+    if not args.resume:
+        return config_from_args(config_class, args), False
+    parser.set_defaults(**{action.dest: argparse.SUPPRESS for action in parser._actions})
+    given = vars(parser.parse_args(argv))  # only the flags given
+    given.pop("resume")
+    if given.pop("paper", False):
+        raise UserError("--paper cannot be combined with --resume (the saved settings hold)")
+    saved = {**read_config(args.resume), "run_dir": args.resume}
+    return saved_config(config_class, resumed_settings(saved, given, may_change), paper), True
+
+
+def saved_config(config_class, saved: dict, paper: dict):
+    """The config of a run's config.json. A setting the file lacks did not exist when
+    the run was made, so the run had the paper's behaviour there (`paper`); settings
+    the code no longer has are dropped."""
+    known = {f.name for f in dataclasses.fields(config_class)}
+    values = {**paper, **saved}
+    return config_class(
+        **{k: tuple(v) if isinstance(v, list) else v for k, v in values.items() if k in known}
+    )
+
+
 # ----------------------------------------------------------------------------------------
 # The run directory: config.json, progress.csv and checkpoint.npz, under a lock.
 # ----------------------------------------------------------------------------------------
@@ -276,10 +325,10 @@ def resumed_settings(saved: dict, given: dict, may_change: tuple[str, ...]) -> d
     return {**saved, **{k: v for k, v in given.items() if k in may_change}}
 
 
-def save_checkpoint(run_dir, arrays: dict[str, np.ndarray], rng, progress, progress_text: str):
+def save_checkpoint(run_dir, arrays: dict[str, np.ndarray], rng, progress, fields) -> None:
     """checkpoint.npz (the arrays, the Generator's state, the counters and rows of the
-    `progress` dataclass), written atomically; then progress.csv. One file holds
-    everything, so a kill between the two writes leaves a consistent run."""
+    `progress` dataclass), written atomically; then progress.csv (`fields` first). One
+    file holds everything, so a kill between the two writes leaves a consistent run."""
     counters = {k: v for k, v in dataclasses.asdict(progress).items() if k != "rows"}
     save_arrays(
         Path(run_dir) / CHECKPOINT,
@@ -290,28 +339,31 @@ def save_checkpoint(run_dir, arrays: dict[str, np.ndarray], rng, progress, progr
             "rows": np.array(json.dumps(progress.rows)),
         },
     )
-    write_text(Path(run_dir) / PROGRESS, progress_text)
+    write_text(Path(run_dir) / PROGRESS, progress_csv(progress.rows, fields))
 
 
-def load_checkpoint(run_dir, rng) -> tuple[dict[str, np.ndarray], dict, list[dict]]:
-    """(arrays, counters, rows) of save_checkpoint's file; restores `rng` in place.
-    progress.csv may hold rows written after the checkpoint: the checkpoint's own copy
-    of the rows is the truth, and a resumed run rewrites the file from it."""
+def load_checkpoint(run_dir, rng, load: Callable[[dict], None], progress_class=None):
+    """Restore `rng` in place, call load(arrays) to copy the checkpoint's arrays into the
+    networks and buffers, and return the progress (`progress_class`, by default
+    Progress). progress.csv may hold rows written after the checkpoint: the checkpoint's
+    own rows are the truth, and a resumed run rewrites the file from them. A truncated,
+    corrupted or foreign file is a UserError naming it."""
     path = Path(run_dir) / CHECKPOINT
     arrays = load_arrays(path)
     try:
         state = json.loads(str(arrays.pop("rng")))
         counters = json.loads(str(arrays.pop("counters")))
         rows = json.loads(str(arrays.pop("rows")))
+        load(arrays)
         rng.bit_generator.state = state
     except (KeyError, ValueError, TypeError) as error:
-        raise UserError(f"{path}: not a checkpoint of this version ({error})") from None
-    return arrays, counters, rows
+        raise UserError(f"{path}: not a checkpoint of this run or version ({error})") from None
+    return (progress_class or Progress)(**counters, rows=rows)
 
 
 def restore_arrays(path, load: Callable[[], None]) -> None:
-    """Run `load()` (copying a checkpoint's arrays into networks); a missing key or a
-    wrong shape means the file is from another version or another run."""
+    """Run `load()` (copying a file's arrays into networks); a missing key or a wrong
+    shape means the file is from another version or another run."""
     try:
         load()
     except (KeyError, ValueError) as error:
@@ -532,9 +584,3 @@ def reuse_freed_memory() -> None:
         libc.mallopt(m_trim_threshold, 1024 * 2**20)  # keep up to 1 GB of freed heap
     except (OSError, AttributeError):
         pass
-
-
-def given_flags(parser: argparse.ArgumentParser, argv) -> argparse.Namespace:
-    """Only the flags that `argv` gives (every default suppressed)."""
-    parser.set_defaults(**{action.dest: argparse.SUPPRESS for action in parser._actions})
-    return parser.parse_args(argv)

@@ -21,7 +21,6 @@ ablations (Figure 4) live in lab/ablations.py and hook in at the `Variant` below
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import sys
@@ -697,38 +696,16 @@ def prepare(config: Config, env, rng: np.random.Generator, variant: Variant = OU
 
 
 def load_checkpoint(run_dir, learner: Learner, replay: ReplayBuffer, rng) -> harness.Progress:
-    arrays, counters, rows = harness.load_checkpoint(run_dir, rng)
-
-    def load() -> None:
-        learner.load_state(arrays)
-        replay.load_state(arrays)
-
-    harness.restore_arrays(Path(run_dir) / harness.CHECKPOINT, load)
-    return harness.Progress(**counters, rows=rows)
-
-
-def save_checkpoint(
-    run_dir, learner: Learner, replay: ReplayBuffer, progress: harness.Progress, rng
-) -> None:
-    text = harness.progress_csv(progress.rows, PROGRESS_FIELDS)
-    harness.save_checkpoint(run_dir, {**learner.state(), **replay.state()}, rng, progress, text)
-
-
-def saved_config(saved: dict, config_class=Config) -> Config:
-    """The Config of a run's config.json. A setting the file lacks did not exist when the
-    run was made, so the run had the paper's behaviour there (PAPER_SETTINGS); settings
-    the code no longer has are dropped."""
-    known = {f.name for f in dataclasses.fields(config_class)}
-    values = {**PAPER_SETTINGS, **saved}
-    return config_class(
-        **{k: tuple(v) if isinstance(v, list) else v for k, v in values.items() if k in known}
+    return harness.load_checkpoint(
+        run_dir, rng, lambda a: (learner.load_state(a), replay.load_state(a))
     )
 
 
 def restore(run_dir, variant: Variant = OURS):
     """A run as its last checkpoint left it (for looking into it, not for training):
     (config, spaces, expert_buffer, learner, replay, progress)."""
-    config = saved_config({**harness.read_config(run_dir), "run_dir": str(run_dir)})
+    saved = {**harness.read_config(run_dir), "run_dir": str(run_dir)}
+    config = harness.saved_config(Config, saved, PAPER_SETTINGS)
     rng = np.random.default_rng(config.seed)
     spaces, expert_buffer, learner, replay, _ = prepare(
         config, expert.make_env(config.env), rng, variant
@@ -813,7 +790,9 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
                 + (f"  averaged PN {row['average_score']:6.3f}" if "average_score" in row else ""),
                 flush=True,
             )
-            save_checkpoint(run_dir, learner, replay, progress, rng)
+            harness.save_checkpoint(
+                run_dir, learner.state() | replay.state(), rng, progress, fields
+            )
             clock.checkpointed()
         if progress.interactions >= config.total_steps:
             break
@@ -847,7 +826,9 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
                 flush=True,
             )
         if clock.checkpoint_due():
-            save_checkpoint(run_dir, learner, replay, progress, rng)
+            harness.save_checkpoint(
+                run_dir, learner.state() | replay.state(), rng, progress, fields
+            )
             clock.checkpointed()
             harness.stop_if_requested()
 
@@ -864,54 +845,18 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
 RESUMABLE_CHANGES = ("total_steps", "eval_every", "checkpoint_every", "log_every")
 
 
-def build_parser(config_class=Config, description: str = "") -> argparse.ArgumentParser:
-    parser = harness.CommandLineParser(
-        description=description
-        or "Off-policy actor-critic imitation learning (Sasaki et al., ICLR 2019).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    harness.add_dataclass_flags(parser, config_class)
-    settings = ", ".join(f"{harness.flag(k)} {v:g}" for k, v in PAPER_SETTINGS.items())
-    parser.add_argument(
-        "--paper",
-        action="store_true",
-        help=f"Appendix B's values where the defaults deviate ({settings}); explicit flags win",
-    )
-    parser.add_argument(
-        "--resume",
-        metavar="RUN_DIR",
-        default="",
-        help="continue the run in RUN_DIR from its last checkpoint with its saved settings;"
-        f" only {', '.join(map(harness.flag, RESUMABLE_CHANGES))} may be given anew",
-    )
-    return parser
-
-
-def config_from_command_line(argv, config_class=Config, description: str = ""):
-    """(config, resume) from the command line. With --resume, the saved settings, and any
-    other flag must agree with them (except RESUMABLE_CHANGES)."""
-    parser = build_parser(config_class, description)
-    args = parser.parse_args(argv)
-    if args.paper:  # Appendix B's values become the defaults; explicit flags still win
-        parser.set_defaults(**PAPER_SETTINGS)
-        args = parser.parse_args(argv)
-    if not args.resume:
-        return harness.config_from_args(config_class, args), False
-    given = vars(harness.given_flags(parser, argv))
-    given.pop("resume")
-    if given.pop("paper", False):
-        raise UserError("--paper cannot be combined with --resume (the saved settings hold)")
-    saved = {**harness.read_config(args.resume), "run_dir": args.resume}
-    settings = harness.resumed_settings(saved, given, RESUMABLE_CHANGES)
-    return saved_config(settings, config_class), True
-
-
 def main(argv: list[str] | None = None, config_class=Config, variant_of=lambda config: OURS) -> int:
     argv = sys.argv[1:] if argv is None else argv
     harness.reuse_freed_memory()
 
     def body() -> None:
-        config, resume = config_from_command_line(argv, config_class)
+        config, resume = harness.config_from_command_line(
+            argv,
+            config_class,
+            "Off-policy actor-critic imitation learning (Sasaki et al., ICLR 2019).",
+            PAPER_SETTINGS,
+            RESUMABLE_CHANGES,
+        )
         train(config, resume, variant_of(config))
 
     return harness.run_cli(body)
