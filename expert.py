@@ -1,26 +1,13 @@
-"""Experts for the imitation tasks: train them, ship them, evaluate them, and write demonstrations.
+"""Experts for the imitation tasks: ship them, evaluate them, and write demonstrations.
 
 The paper (Sasaki et al., ICLR 2019, Sec. 5.1) trains its experts with TRPO and never ships
-them. This project must run offline on a fresh machine, so it trains its own experts here with
-Augmented Random Search (Mania, Guy & Recht, 2018, https://arxiv.org/abs/1803.07055),
-Algorithm 2, variant V2-t, which needs no autodiff and runs its rollouts in parallel.
-
-Symbols of the ARS paper and where they live:
-
-    M          policy matrix, (dim A, dim S)             -> ``weights``
-    mu, Sigma  running mean and diagonal covariance of   -> ``ObservationStatistics``
-               the states visited during training (V2)
-    alpha      step size                                 -> ``ARSConfig.step_size``
-    N          directions sampled per iteration          -> ``ARSConfig.directions``
-    b          top directions used in the update (V2-t)  -> ``ARSConfig.top``
-    nu         exploration noise                         -> ``ARSConfig.noise``
-    delta_k    direction, an i.i.d. N(0, 1) matrix       -> ``deltas[k]``
-    sigma_R    std of the 2b rewards used in the update  -> ``reward_std``
-
-Policy: ``a = clip(M @ ((s - mu) / sqrt(diag Sigma)), low, high)``, deterministic.
+them. This project must run offline on a fresh machine, so it ships its own: linear
+policies trained by ARS V2-t (Hopper, HalfCheetah, Humanoid; lab/ars.py) and SAC policy
+networks (Walker2d, Ant; lab/sac.py). This file is what the learner needs of them: the
+environments, the expert policy (load, act), demonstrations and Table 1's reference returns.
 
 Files:
-    experts/<env>.npz    a shipped expert: M, mu, std (ARS) or a policy network (SAC, sac.py),
+    experts/<env>.npz    a shipped expert: M, mu, std (ARS) or a policy network (SAC),
                          action bounds, and a JSON ``metadata`` record of the training
                          commands, seed, env steps and wall time
     experts/table.json   Table 1 for the -v4 tasks (``python expert.py table``)
@@ -28,26 +15,20 @@ Files:
                          ``next_observations``, ``terminals`` (is s' terminal), ``env_id``,
                          ``returns`` (per trajectory), ``seed``, ``sampling``, ``trajectories``
 
-Subcommands (``python expert.py -h``): ``train``, ``demos``, ``check-demos``,
-``import-minari``, ``table``. Errors that a user can cause end in one line ``error: ...`` on
-stderr and exit status 2.
+Subcommands (``python expert.py -h``): ``demos``, ``check-demos``, ``import-minari``,
+``table``. Errors that a user can cause end in one line ``error: ...`` on stderr and exit
+status 2.
 """
 
 from __future__ import annotations
 
 import argparse
-import ast
 import contextlib
 import dataclasses
-import inspect
 import json
 import math
-import multiprocessing
 import os
-import shlex
-import signal
 import sys
-import time
 import warnings
 import zipfile
 from collections.abc import Callable
@@ -57,11 +38,12 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
+import harness
 import nets
+from harness import UserError  # re-exported: `from expert import UserError` keeps working
 
 REPO_DIR = Path(__file__).resolve().parent
 EXPERTS_DIR = REPO_DIR / "experts"
-CHECKPOINTS_DIR = EXPERTS_DIR / "checkpoints"
 DEMOS_DIR = REPO_DIR / "demos"
 TABLE_PATH = EXPERTS_DIR / "table.json"
 
@@ -75,10 +57,6 @@ SAMPLING_MODES = ("sparse", "dense")
 
 # Demonstration actions may come from float32 files or other tools; accept tiny overshoots.
 ACTION_BOUND_TOLERANCE = 1e-4
-
-
-class UserError(Exception):
-    """An error the user caused (bad flag, bad file, wrong environment): one line, exit 2."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -169,7 +147,7 @@ class ExpertPolicy:
 
     - ``ars-linear``: ARS V2 ``a = clip(M @ ((s - mu) / std), low, high)``; ``weights``,
       ``obs_mean`` and ``obs_std`` hold M, mu and std, and ``network`` is None.
-    - ``sac-mlp``: the mean action of a SAC policy (sac.py), ``a = low + (tanh(m(s)) + 1)
+    - ``sac-mlp``: the mean action of a SAC policy (lab/sac.py), ``a = low + (tanh(m(s)) + 1)
       (high - low)/2`` with ``m(s)`` the first dim A outputs of ``network`` (the others are
       its log std, unused here); ``weights``, ``obs_mean`` and ``obs_std`` are None.
     """
@@ -214,7 +192,7 @@ class ExpertPolicy:
                 sizes=np.array(self.network.sizes),
                 **self.network.state("policy"),
             )
-        nets.save_arrays(
+        harness.save_arrays(
             path,
             dict(
                 env_id=np.array(self.env_id),
@@ -240,7 +218,7 @@ def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
     if not path.exists():
         raise UserError(
             f"no expert for {env_id} at {path}; train one with "
-            f"`python expert.py train --env {env_id}`"
+            f"`python -m lab.ars --env {env_id}` (or lab.sac)"
         )
     try:
         with np.load(path, allow_pickle=False) as file:
@@ -462,7 +440,7 @@ def make_demos(
 def write_demos(path: Path, demos: dict) -> None:
     """Validate the triplets against their environment, then write them atomically."""
     validate_demos(demos, str(demos["env_id"]), Path(path))
-    nets.save_arrays(path, demos)
+    harness.save_arrays(path, demos)
 
 
 def demo_return_floor(env_id: str) -> float:
@@ -750,431 +728,10 @@ def normalized_score(value: float, references: tuple[float, float]) -> float:
     return (value - random_return) / (expert_return - random_return)
 
 
-# ---------------------------------------------------------------------------------------------
-# ARS V2-t trainer (Mania, Guy & Recht 2018, Algorithm 2)
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass
-class ARSConfig:
-    """Hyperparameters of ARS V2-t; per-task defaults in ``ARS_DEFAULTS`` (rl-zoo ``ars.yml``)."""
-
-    step_size: float = 0.02
-    """alpha: step size of the update of M."""
-    directions: int = 8
-    """N: directions delta_k sampled per iteration (2N rollouts: M + nu delta, M - nu delta)."""
-    top: int = 4
-    """b: best directions, ranked by max(r+, r-), that enter the update (V2-t)."""
-    noise: float = 0.03
-    """nu: scale of the exploration perturbations."""
-    survival_bonus: float = 0.0
-    """Subtracted from every training reward, so that merely staying alive earns nothing."""
-    steps: int = 10_000_000
-    """Training budget in environment steps (perturbed rollouts only, not evaluations)."""
-    eval_every: int = 10
-    """Evaluate the unperturbed policy every this many iterations."""
-    eval_episodes: int = 5
-    """Episodes per evaluation; the best evaluated policy is the one shipped."""
-
-
-# rl-baselines3-zoo ars.yml, "closest to the original paper", plus budgets.
-ARS_DEFAULTS = {
-    "Hopper-v4": dict(
-        step_size=0.01, directions=8, top=4, noise=0.025, survival_bonus=1.0, steps=7_000_000
-    ),
-    "HalfCheetah-v4": dict(
-        step_size=0.02, directions=32, top=4, noise=0.03, survival_bonus=0.0, steps=12_000_000
-    ),
-    "Walker2d-v4": dict(
-        step_size=0.03, directions=40, top=30, noise=0.025, survival_bonus=1.0, steps=75_000_000
-    ),
-    "Ant-v4": dict(
-        step_size=0.015, directions=60, top=20, noise=0.025, survival_bonus=1.0, steps=75_000_000
-    ),
-    "Humanoid-v4": dict(
-        step_size=0.02, directions=256, top=256, noise=0.0075, survival_bonus=5.0, steps=25_000_000
-    ),
-}
-
-
-def ars_config_for(env_id: str, **overrides) -> ARSConfig:
-    """Task defaults, then any explicit overrides (``None`` means "not given")."""
-    values = {**ARS_DEFAULTS.get(env_id, {})}
-    values.update({key: value for key, value in overrides.items() if value is not None})
-    return ARSConfig(**values)
-
-
-class ObservationStatistics:
-    """Running mu and diag(Sigma) of all states visited in training (ARS V2).
-
-    Kept as (count, mean, sum of squared deviations) and merged with Chan et al.'s parallel
-    formula, so that merging per-rollout statistics in a fixed order is exact and deterministic.
-    """
-
-    def __init__(self, dim: int):
-        self.count = 0
-        self.mean = np.zeros(dim)
-        self.squared_deviations = np.zeros(dim)
-
-    def merge(self, count: int, mean: np.ndarray, squared_deviations: np.ndarray) -> None:
-        if count == 0:
-            return
-        total = self.count + count
-        delta = mean - self.mean
-        self.mean = self.mean + delta * count / total
-        self.squared_deviations = (
-            self.squared_deviations + squared_deviations + delta**2 * self.count * count / total
-        )
-        self.count = total
-
-    def std(self) -> np.ndarray:
-        """sqrt(diag Sigma); 1 where a coordinate has not varied yet (so it stays unscaled)."""
-        if self.count < 2:
-            return np.ones_like(self.mean)
-        variance = self.squared_deviations / (self.count - 1)
-        return np.where(variance > 1e-8, np.sqrt(variance), 1.0)
-
-
-# Each worker process keeps its own environment between tasks (made once by the initializer).
-_worker_env: gym.Env | None = None
-
-
-def _init_worker(env_id: str) -> None:
-    global _worker_env
-    # Ctrl-C reaches the whole process group; only the parent acts on it (it checkpoints
-    # and then closes the pool), so a worker is never cut off mid-task.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _worker_env = make_env(env_id)
-
-
-def _rollout_task(task: tuple) -> tuple:
-    return rollout(_worker_env, *task)
-
-
-def rollout(
-    env: gym.Env,
-    weights: np.ndarray,
-    obs_mean: np.ndarray,
-    obs_std: np.ndarray,
-    seed: int,
-    survival_bonus: float,
-    collect_states: bool,
-) -> tuple:
-    """One episode of the linear policy from ``reset(seed=seed)``.
-
-    Returns (return minus survival bonus per step, steps, true return, state statistics) where
-    the statistics are (count, mean, squared deviations) of the states acted upon, or None.
-    """
-    low, high = env.action_space.low, env.action_space.high
-    observation, _ = env.reset(seed=seed)
-    states, true_return, steps, done = [], 0.0, 0, False
-    while not done:
-        if collect_states:
-            states.append(observation)
-        action = np.clip(weights @ ((observation - obs_mean) / obs_std), low, high)  # (dim A,)
-        observation, reward, terminated, truncated, _ = env.step(action)
-        true_return += float(reward)
-        steps += 1
-        done = terminated or truncated
-    statistics = None
-    if collect_states:
-        visited = np.asarray(states, dtype=np.float64)  # (T, dim S)
-        mean = visited.mean(axis=0)  # (dim S,)
-        statistics = (len(visited), mean, ((visited - mean) ** 2).sum(axis=0))
-    return true_return - survival_bonus * steps, steps, true_return, statistics
-
-
-class RolloutRunner:
-    """Runs rollout tasks in ``workers`` processes (or in this process when workers == 1)."""
-
-    def __init__(self, env_id: str, workers: int):
-        self.pool = None
-        if workers > 1:
-            # spawn: a clean interpreter per worker, safe whatever threads the parent holds.
-            context = multiprocessing.get_context("spawn")
-            self.pool = context.Pool(workers, initializer=_init_worker, initargs=(env_id,))
-        else:
-            self.env = make_env(env_id)
-
-    def run(self, tasks: list[tuple]) -> list[tuple]:
-        if self.pool is not None:
-            return self.pool.map(_rollout_task, tasks, chunksize=1)
-        return [rollout(self.env, *task) for task in tasks]
-
-    def close(self) -> None:
-        if self.pool is not None:
-            self.pool.close()
-            self.pool.join()
-        else:
-            self.env.close()
-
-    def __enter__(self) -> RolloutRunner:
-        return self
-
-    def __exit__(self, error_type, error, traceback) -> None:
-        if self.pool is not None and error_type is not None:
-            self.pool.terminate()  # e.g. Ctrl-C: do not wait for workers that were interrupted
-        self.close()
-
-
-@dataclass
-class ARSState:
-    """Everything needed to continue a run exactly: the checkpoint's contents."""
-
-    env_id: str
-    seed: int
-    config: ARSConfig
-    weights: np.ndarray  # M, (dim A, dim S)
-    statistics: ObservationStatistics
-    rng: np.random.Generator
-    iteration: int = 0
-    env_steps: int = 0
-    wall_seconds: float = 0.0
-    best_return: float = -np.inf
-    best_return_std: float = 0.0
-    best_weights: np.ndarray | None = None
-    best_obs_mean: np.ndarray | None = None
-    best_obs_std: np.ndarray | None = None
-    best_env_steps: int = 0
-    commands: tuple[str, ...] = ()
-
-    def save(self, path: Path) -> None:
-        best = self.best_weights is not None
-        nets.save_arrays(
-            path,
-            dict(
-                env_id=np.array(self.env_id),
-                seed=np.array(self.seed),
-                config=np.array(json.dumps(dataclasses.asdict(self.config))),
-                weights=self.weights,
-                stat_count=np.array(self.statistics.count),
-                stat_mean=self.statistics.mean,
-                stat_squared_deviations=self.statistics.squared_deviations,
-                rng_state=np.array(json.dumps(self.rng.bit_generator.state)),
-                iteration=np.array(self.iteration),
-                env_steps=np.array(self.env_steps),
-                wall_seconds=np.array(self.wall_seconds),
-                best_return=np.array(self.best_return),
-                best_return_std=np.array(self.best_return_std),
-                best_weights=self.best_weights if best else np.zeros(0),
-                best_obs_mean=self.best_obs_mean if best else np.zeros(0),
-                best_obs_std=self.best_obs_std if best else np.zeros(0),
-                best_env_steps=np.array(self.best_env_steps),
-                commands=np.array(json.dumps(list(self.commands))),
-            ),
-        )
-
-    @classmethod
-    def load(cls, path: Path) -> ARSState:
-        try:
-            with np.load(path, allow_pickle=False) as file:
-                statistics = ObservationStatistics(file["stat_mean"].shape[0])
-                statistics.count = int(file["stat_count"])
-                statistics.mean = file["stat_mean"]
-                statistics.squared_deviations = file["stat_squared_deviations"]
-                rng = np.random.default_rng()
-                rng.bit_generator.state = json.loads(str(file["rng_state"]))
-                best = file["best_weights"].size > 0
-                return cls(
-                    env_id=str(file["env_id"]),
-                    seed=int(file["seed"]),
-                    config=ARSConfig(**json.loads(str(file["config"]))),
-                    weights=file["weights"],
-                    statistics=statistics,
-                    rng=rng,
-                    iteration=int(file["iteration"]),
-                    env_steps=int(file["env_steps"]),
-                    wall_seconds=float(file["wall_seconds"]),
-                    best_return=float(file["best_return"]),
-                    best_return_std=float(file["best_return_std"]),
-                    best_weights=file["best_weights"] if best else None,
-                    best_obs_mean=file["best_obs_mean"] if best else None,
-                    best_obs_std=file["best_obs_std"] if best else None,
-                    best_env_steps=int(file["best_env_steps"]),
-                    commands=tuple(json.loads(str(file["commands"]))),
-                )
-        except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
-            raise UserError(f"{path}: not a valid ARS checkpoint ({error})") from None
-
-
-def ars_iteration(state: ARSState, runner: RolloutRunner) -> None:
-    """One iteration of Algorithm 2 (V2-t), updating M and (mu, Sigma) in place."""
-    config, rng = state.config, state.rng
-    # mu and Sigma are frozen for the whole iteration (line 5 uses those of iteration j).
-    obs_mean, obs_std = state.statistics.mean.copy(), state.statistics.std()
-    # Line 4: delta_1..delta_N with i.i.d. standard normal entries, each (dim A, dim S).
-    deltas = rng.standard_normal((config.directions, *state.weights.shape))  # (N, dim A, dim S)
-    # Every rollout gets its own reset seed from the one Generator, so that results do not
-    # depend on which worker runs which rollout, and a resumed run continues exactly.
-    reset_seeds = rng.integers(0, 2**31 - 1, size=(config.directions, 2))
-    tasks = []
-    for k in range(config.directions):
-        for sign_index, sign in enumerate((+1.0, -1.0)):
-            # Line 5: pi_{j,k,+/-}(s) = (M_j +/- nu delta_k) diag(Sigma_j)^(-1/2) (s - mu_j).
-            perturbed = state.weights + sign * config.noise * deltas[k]
-            tasks.append(
-                (
-                    perturbed,
-                    obs_mean,
-                    obs_std,
-                    int(reset_seeds[k, sign_index]),
-                    config.survival_bonus,
-                    True,
-                )
-            )
-    results = runner.run(tasks)
-    rewards = np.array([result[0] for result in results]).reshape(config.directions, 2)  # (N, 2)
-    state.env_steps += sum(result[1] for result in results)
-    # Line 8 (V2): update mu and Sigma with every state visited in this iteration, in task order.
-    for result in results:
-        state.statistics.merge(*result[3])
-    # Line 6 (V2-t): keep the b directions with the largest max(r+, r-).
-    top = np.argsort(-rewards.max(axis=1), kind="stable")[: config.top]
-    # Line 7: M += alpha / (b sigma_R) sum_k (r+ - r-) delta_k, sigma_R over the 2b rewards.
-    reward_std = rewards[top].std()
-    if reward_std < 1e-8:
-        reward_std = 1.0  # all b directions scored alike: no signal, and no division by zero
-    differences = rewards[top, 0] - rewards[top, 1]  # (b,)
-    step = np.tensordot(differences, deltas[top], axes=1)  # (dim A, dim S)
-    state.weights = state.weights + config.step_size / (config.top * reward_std) * step
-    state.iteration += 1
-
-
-def evaluate_linear(state: ARSState, runner: RolloutRunner) -> np.ndarray:
-    """True returns of the unperturbed policy M over ``eval_episodes`` fresh seeds.
-
-    The seeds come from their own Generator, derived from (seed, iteration), so that how
-    often one evaluates does not change the training run, and the shipped policy is not
-    chosen on the fixed seeds that ``table`` reports.
-    """
-    obs_mean, obs_std = state.statistics.mean.copy(), state.statistics.std()
-    eval_rng = np.random.default_rng([state.seed, state.iteration])
-    seeds = eval_rng.integers(2**20, 2**31 - 1, size=state.config.eval_episodes)
-    tasks = [(state.weights, obs_mean, obs_std, int(seed), 0.0, False) for seed in seeds]
-    return np.array([result[2] for result in runner.run(tasks)])
-
-
-def train(
-    env_id: str,
-    seed: int,
-    config: ARSConfig,
-    workers: int,
-    checkpoint_path: Path,
-    expert_path: Path,
-    resume: bool = False,
-    command: str = "",
-    checkpoint_seconds: float = 10.0,
-    log: Callable[[str], None] = print,
-) -> ARSState:
-    """Run ARS V2-t until ``config.steps`` environment steps; keep the best evaluated policy."""
-    env = make_env(env_id)
-    dim_s, dim_a = env_dimensions(env)
-    action_low = env.action_space.low.astype(np.float64)
-    action_high = env.action_space.high.astype(np.float64)
-    env.close()
-    if resume:
-        if not checkpoint_path.exists():
-            raise UserError(f"--resume: no checkpoint at {checkpoint_path}")
-        state = ARSState.load(checkpoint_path)
-        if state.env_id != env_id:
-            raise UserError(f"{checkpoint_path}: checkpoint is for {state.env_id}, not {env_id}")
-        # Only the budget may change on resume; anything else would not be the same run.
-        state.config = dataclasses.replace(state.config, steps=config.steps)
-        log(f"resumed {env_id} at iteration {state.iteration}, {state.env_steps} env steps")
-    else:
-        state = ARSState(
-            env_id=env_id,
-            seed=seed,
-            config=config,
-            weights=np.zeros((dim_a, dim_s)),  # M_0 = 0 (Algorithm 2, line 2)
-            statistics=ObservationStatistics(dim_s),
-            rng=np.random.default_rng(seed),
-        )
-    state.commands = (*state.commands, command)
-    log(
-        f"ARS V2-t on {env_id}: seed {state.seed}, {workers} workers, "
-        f"{json.dumps(dataclasses.asdict(state.config))}"
-    )
-
-    def write_expert() -> None:
-        policy = ExpertPolicy(
-            env_id,
-            state.best_weights,
-            state.best_obs_mean,
-            state.best_obs_std,
-            action_low,
-            action_high,
-        )
-        policy.save(
-            expert_path,
-            trainer="ARS V2-t (Mania, Guy & Recht 2018, Algorithm 2)",
-            commands=list(state.commands),
-            seed=state.seed,
-            hyperparameters=dataclasses.asdict(state.config),
-            env_steps=state.best_env_steps,
-            wall_seconds=round(state.wall_seconds, 1),
-            eval_return_mean=state.best_return,
-            eval_return_std=state.best_return_std,
-            eval_episodes=state.config.eval_episodes,
-        )
-
-    # A fresh run must not replace a shipped expert with a worse one: it writes only when it
-    # beats the evaluation recorded in the existing file (a resumed run carries its own best).
-    if not resume and expert_path.exists():
-        try:
-            existing = load_expert(env_id, expert_path)
-            state.best_return = float(existing.metadata.get("eval_return_mean", -np.inf))
-            log(
-                f"{expert_path} exists (eval return {state.best_return:.1f}); "
-                f"it is replaced only by a better evaluation"
-            )
-        except UserError:
-            pass
-    started, last_checkpoint = time.monotonic(), time.monotonic()
-    wall_at_start = state.wall_seconds
-    with RolloutRunner(env_id, workers) as runner:
-        while state.env_steps < state.config.steps:
-            ars_iteration(state, runner)
-            finished = state.env_steps >= state.config.steps
-            if state.iteration % state.config.eval_every == 0 or finished:
-                returns = evaluate_linear(state, runner)
-                state.wall_seconds = wall_at_start + time.monotonic() - started
-                improved = returns.mean() > state.best_return
-                if improved:
-                    state.best_return, state.best_return_std = returns.mean(), returns.std()
-                    state.best_weights = state.weights.copy()
-                    state.best_obs_mean = state.statistics.mean.copy()
-                    state.best_obs_std = state.statistics.std()
-                    state.best_env_steps = state.env_steps
-                    write_expert()
-                log(
-                    f"iteration {state.iteration:5d}  env steps {state.env_steps:10d}  "
-                    f"wall {state.wall_seconds:8.1f} s  eval return {returns.mean():9.1f} "
-                    f"± {returns.std():6.1f}" + ("  (best, saved)" if improved else "")
-                )
-            state.wall_seconds = wall_at_start + time.monotonic() - started
-            if nets.checkpoint_due(time.monotonic() - last_checkpoint, checkpoint_seconds):
-                state.save(checkpoint_path)
-                last_checkpoint = time.monotonic()
-                nets.stop_if_requested()  # Ctrl-C or kill, with the checkpoint written
-        state.save(checkpoint_path)
-    if state.best_weights is None:
-        log(
-            f"done: no evaluation beat the existing {expert_path} (eval return "
-            f"{state.best_return:.1f}); left it unchanged"
-        )
-    else:
-        log(
-            f"done: best eval return {state.best_return:.1f} ± {state.best_return_std:.1f} at "
-            f"{state.best_env_steps} env steps; expert in {expert_path}"
-        )
-    return state
-
-
 def positive_int(text: str) -> int:
     """A count such as ``8`` or a budget such as ``7e6``."""
     value = float(text)
-    if value != int(value):
+    if not math.isfinite(value) or value != int(value):
         raise argparse.ArgumentTypeError(f"must be a whole number, got {text}")
     value = int(value)
     if value < 1:
@@ -1182,183 +739,10 @@ def positive_int(text: str) -> int:
     return value
 
 
-def positive_number(text: str) -> float:
-    """A finite number above 0, such as a time constant ``1e4`` (NaN and inf refused)."""
-    value = float(text)
-    if not 0 < value < float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {text}")
-    return value
-
-
-def add_config_flags(parser: argparse.ArgumentParser) -> None:
-    """One flag per ARSConfig and sac.SACConfig field, help from the fields' docstrings.
-
-    A field both have (the budget, the evaluations) is one flag; every default is None,
-    "not given", so that each method can apply its own and refuse the other's flags.
-    """
-    import sac
-
-    ars_fields = {field.name: field for field in dataclasses.fields(ARSConfig)}
-    sac_fields = {field.name: field for field in dataclasses.fields(sac.SACConfig)}
-    ars_docs, sac_docs = field_docstrings(ARSConfig), field_docstrings(sac.SACConfig)
-    for name in [*ars_fields, *(name for name in sac_fields if name not in ars_fields)]:
-        field = ars_fields.get(name) or sac_fields[name]
-        helps = []
-        if name in ars_fields:
-            helps.append(f"ARS: {ars_docs[name]} (default: per task, else {field.default})")
-        if name in sac_fields:
-            helps.append(f"SAC: {sac_docs[name]} (default: {sac_fields[name].default})")
-        options = dict(type=float if field.type in ("float", float) else positive_int)
-        if name not in ars_fields and "tuple" in str(field.type):
-            options["nargs"] = "+"
-        parser.add_argument(
-            "--" + name.replace("_", "-"), default=None, help=" | ".join(helps), **options
-        )
-
-
-def field_docstrings(cls) -> dict[str, str]:
-    """The string literal under each dataclass field (the CleanRL/Spinning Up convention)."""
-    tree = ast.parse(inspect.getsource(cls))
-    body = tree.body[0].body
-    docs = {}
-    for previous, node in zip(body, body[1:], strict=False):
-        if (
-            isinstance(previous, ast.AnnAssign)
-            and isinstance(node, ast.Expr)
-            and isinstance(node.value, ast.Constant)
-            and isinstance(node.value.value, str)
-        ):
-            docs[previous.target.id] = node.value.value
-    return docs
-
-
-def add_dataclass_flags(parser: argparse.ArgumentParser, cls) -> None:
-    """One --flag per dataclass field, its help text the field's docstring (inherited
-    fields' too): the command lines of expert.py, offpac_il.py and baselines.py."""
-    docs = {}
-    for klass in reversed(cls.__mro__):
-        if dataclasses.is_dataclass(klass):
-            docs.update(field_docstrings(klass))
-    for f in dataclasses.fields(cls):
-        flag, default = "--" + f.name.replace("_", "-"), f.default
-        if isinstance(default, bool):
-            parser.add_argument(
-                flag, action=argparse.BooleanOptionalAction, default=default, help=docs[f.name]
-            )
-        elif isinstance(default, tuple):
-            parser.add_argument(flag, type=int, nargs="+", default=default, help=docs[f.name])
-        else:
-            parser.add_argument(flag, type=type(default), default=default, help=docs[f.name])
-
-
-class CommandLineParser(argparse.ArgumentParser):
-    """argparse, but a bad flag ends in one line on stderr and exit status 2 (no usage
-    dump), like every other error a user can cause."""
-
-    def error(self, message: str):
-        print(f"error: {message} (see {self.prog} --help)", file=sys.stderr)
-        sys.exit(2)
-
-
-def command_line(argv: list[str]) -> str:
-    return shlex.join(["python", "expert.py", *argv])
-
-
-def given_flags(args, names) -> list[str]:
-    """The flags among ``names`` (dataclass field names) given on the command line."""
-    return ["--" + name.replace("_", "-") for name in names if getattr(args, name) is not None]
-
-
-def cli_train(args, argv) -> None:
-    import sac
-
-    ars_only = {f.name for f in dataclasses.fields(ARSConfig)} - {
-        f.name for f in dataclasses.fields(sac.SACConfig)
-    }
-    sac_only = {f.name for f in dataclasses.fields(sac.SACConfig)} - {
-        f.name for f in dataclasses.fields(ARSConfig)
-    }
-    wrong = given_flags(args, sorted(sac_only | {"run_dir"} if args.method == "ars" else ars_only))
-    if args.method == "sac" and args.checkpoint is not None:
-        wrong.append("--checkpoint")
-    if wrong:
-        raise UserError(f"{', '.join(wrong)}: not a setting of --method {args.method}")
-    if args.method == "sac":
-        cli_train_sac(args, argv)
-        return
-    overrides = {field.name: getattr(args, field.name) for field in dataclasses.fields(ARSConfig)}
-    config = ars_config_for(args.env, **overrides)
-    if args.resume:
-        given = {
-            name: value
-            for name, value in overrides.items()
-            if value is not None and name != "steps"
-        }
-        if given:
-            raise UserError(
-                f"--resume continues the checkpoint's settings; only --steps may "
-                f"change (got {', '.join('--' + n.replace('_', '-') for n in given)})"
-            )
-    checkpoint = (
-        Path(args.checkpoint) if args.checkpoint else CHECKPOINTS_DIR / f"{args.env}.ckpt.npz"
-    )
-    out = Path(args.out) if args.out else default_expert_path(args.env)
-    with nets.stop_at_next_checkpoint():
-        train(
-            args.env,
-            args.seed,
-            config,
-            args.workers,
-            checkpoint,
-            out,
-            resume=args.resume,
-            command=command_line(argv),
-            log=lambda line: print(line, flush=True),
-        )
-
-
-def cli_train_sac(args, argv) -> None:
-    """``train --method sac``: a SAC run in ``--run-dir``, its best policy to ``--out``."""
-    import sac
-
-    run_dir = Path(args.run_dir) if args.run_dir else sac.default_run_dir(args.env, args.seed)
-    names = [field.name for field in dataclasses.fields(sac.SACConfig)]
-    if args.resume:
-        given = [flag for flag in given_flags(args, names) if flag != "--steps"]
-        if given:
-            raise UserError(
-                f"--resume continues the run's settings; only --steps may change "
-                f"(got {', '.join(given)})"
-            )
-        saved = sac.saved_run(run_dir)
-        config = dataclasses.replace(saved["config"], steps=args.steps or saved["config"].steps)
-        seed, out = saved["seed"], Path(args.out or saved["expert_path"])
-    else:
-        values = {name: getattr(args, name) for name in names if getattr(args, name) is not None}
-        if "hidden" in values:
-            values["hidden"] = tuple(values["hidden"])
-        config = sac.SACConfig(**values)
-        seed, out = args.seed, Path(args.out) if args.out else default_expert_path(args.env)
-    with nets.stop_at_next_checkpoint():
-        sac.train(
-            args.env,
-            seed,
-            config,
-            run_dir,
-            out,
-            resume=args.resume,
-            command=command_line(argv),
-            log=lambda line: print(line, flush=True),
-        )
-
-
-def cli_demos(args, argv) -> None:
+def cli_demos(args) -> None:
     expert = load_expert(args.env, Path(args.expert)) if args.expert else None
-    out = (
-        Path(args.out)
-        if args.out
-        else default_demos_path(args.env, args.trajectories, args.sampling, args.seed)
-    )
+    default = default_demos_path(args.env, args.trajectories, args.sampling, args.seed)
+    out = Path(args.out) if args.out else default
     demos = make_demos(args.env, args.trajectories, args.sampling, args.seed, expert=expert)
     write_demos(out, demos)
     print(
@@ -1369,7 +753,7 @@ def cli_demos(args, argv) -> None:
     )
 
 
-def cli_import_minari(args, argv) -> None:
+def cli_import_minari(args) -> None:
     demos = import_minari(args.dataset_id, args.env, args.trajectories, args.sampling, args.seed)
     write_demos(Path(args.out), demos)
     print(
@@ -1378,13 +762,10 @@ def cli_import_minari(args, argv) -> None:
     )
 
 
-def cli_check_demos(args, argv) -> None:
+def cli_check_demos(args) -> None:
     demos = load_demos(Path(args.file), args.env)
-    returns = (
-        "unknown"
-        if demos.returns is None
-        else f"{demos.returns.mean():.1f} ± {demos.returns.std():.1f}"
-    )
+    r = demos.returns
+    returns = "unknown" if r is None else f"{r.mean():.1f} ± {r.std():.1f}"
     print(
         f"{args.file}: {len(demos)} valid triplets for {args.env} "
         f"({demos.sampling or 'unknown'} sampling, {demos.trajectories or '?'} trajectories, "
@@ -1392,51 +773,16 @@ def cli_check_demos(args, argv) -> None:
     )
 
 
-def cli_table(args, argv) -> None:
+def cli_table(args) -> None:
     table = measure_table(args.episodes, args.seed, log=lambda line: print(line, flush=True))
-    nets.write_text(Path(args.out), json.dumps(table, indent=2) + "\n")
+    harness.write_text(Path(args.out), json.dumps(table, indent=2) + "\n")
     print(f"wrote {args.out}\n")
     print(table_markdown(table))
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = CommandLineParser(prog="expert.py", description=__doc__.splitlines()[0])
+    parser = harness.CommandLineParser(prog="expert.py", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
-
-    train_parser = commands.add_parser(
-        "train", help="train an expert: ARS V2-t (default) or SAC (--method sac)"
-    )
-    train_parser.add_argument("--env", required=True, help="gymnasium id, e.g. Hopper-v4")
-    train_parser.add_argument(
-        "--method",
-        choices=("ars", "sac"),
-        default="ars",
-        help="ARS V2-t (Hopper, HalfCheetah, Humanoid) or Soft Actor-Critic, sac.py "
-        "(Walker2d, Ant)",
-    )
-    train_parser.add_argument("--seed", type=int, default=0)
-    train_parser.add_argument(
-        "--workers",
-        type=positive_int,
-        default=os.cpu_count() or 1,
-        help="ARS: rollout processes (default: CPU count)",
-    )
-    train_parser.add_argument(
-        "--resume",
-        action="store_true",
-        help="continue exactly from the checkpoint (ARS: --checkpoint; SAC: --run-dir)",
-    )
-    train_parser.add_argument(
-        "--checkpoint", help="ARS: default experts/checkpoints/<env>.ckpt.npz"
-    )
-    train_parser.add_argument(
-        "--run-dir",
-        help="SAC: run directory with checkpoint.npz and progress.csv "
-        "(default: runs/sac-<env>-seed<seed>, git-ignored)",
-    )
-    train_parser.add_argument("--out", help="expert file (default: experts/<env>.npz)")
-    add_config_flags(train_parser)
-    train_parser.set_defaults(handler=cli_train)
 
     demos_parser = commands.add_parser("demos", help="write expert (s, a, s') demonstrations")
     demos_parser.add_argument("--env", required=True)
@@ -1486,23 +832,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
     args = build_parser().parse_args(argv)
     try:
-        args.handler(args, argv)
+        args.handler(args)
     except UserError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        resumable = "; continue with --resume" if args.command == "train" else ""
-        print(f"interrupted{resumable}", file=sys.stderr)
+        print("interrupted", file=sys.stderr)
         return 130
     return 0
 
 
 if __name__ == "__main__":
-    # Run as the module `expert`, the one sac.py imports, so that both share one UserError
-    # (a script's own classes live in __main__, a second copy of this file).
-    import expert
-
-    sys.exit(expert.main())
+    sys.exit(main())

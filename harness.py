@@ -132,7 +132,16 @@ def add_dataclass_flags(parser: argparse.ArgumentParser, cls) -> None:
         elif isinstance(default, tuple):
             parser.add_argument(flag, type=int, nargs="+", default=default, help=docs[f.name])
         else:
-            parser.add_argument(flag, type=type(default), default=default, help=docs[f.name])
+            kind = whole_number if type(default) is int else type(default)
+            parser.add_argument(flag, type=kind, default=default, help=docs[f.name])
+
+
+def whole_number(text: str) -> int:
+    """An int flag's value; budgets may be written as 3e5."""
+    value = float(text)
+    if not value.is_integer():
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text}")
+    return int(value)
 
 
 def config_from_args(cls, args: argparse.Namespace):
@@ -210,8 +219,9 @@ def config_from_command_line(argv, config_class, description, paper: dict, may_c
         args = parser.parse_args(argv)
     if not args.resume:
         return config_from_args(config_class, args), False
-    parser.set_defaults(**{action.dest: argparse.SUPPRESS for action in parser._actions})
-    given = vars(parser.parse_args(argv))  # only the flags given
+    for action in parser._actions:  # parse again, keeping only the flags given
+        action.default = argparse.SUPPRESS
+    given = vars(parser.parse_args(argv))
     given.pop("resume")
     if given.pop("paper", False):
         raise UserError("--paper cannot be combined with --resume (the saved settings hold)")
@@ -504,6 +514,11 @@ def stop_at_next_checkpoint():
         _stop.clear()
 
 
+def stop_requested() -> bool:
+    """Has a signal asked the run to stop at its next checkpoint?"""
+    return _stop.is_set()
+
+
 def stop_if_requested() -> None:
     """After a checkpoint: end the run if a signal asked for it; `run_cli` reports the
     KeyboardInterrupt as "continue with --resume"."""
@@ -517,6 +532,7 @@ def run_cli(body: Callable[[], object]) -> int:
     become one line on stderr and exit status 2."""
     from threadpoolctl import threadpool_limits
 
+    reuse_freed_memory()
     try:
         with threadpool_limits(limits=1, user_api="blas"), stop_at_next_checkpoint():
             body()

@@ -847,7 +847,6 @@ RESUMABLE_CHANGES = ("total_steps", "eval_every", "checkpoint_every", "log_every
 
 def main(argv: list[str] | None = None, config_class=Config, variant_of=lambda config: OURS) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    harness.reuse_freed_memory()
 
     def body() -> None:
         config, resume = harness.config_from_command_line(

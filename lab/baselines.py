@@ -22,9 +22,11 @@ What is shared with the learner (offpac_il.py), not copied: environments, demons
 and reference returns (expert.py); action scaling and state standardisation by the
 demonstrations' statistics (`offpac_il.Spaces`, `make_spaces`); whole episodes and
 seeded evaluation (`offpac_il.run_episode`, `offpac_il.evaluate`: both need only an
-object with `act(states, noise)` and `noise_dim`, which `GaussianPolicy` is); the progress
-file (`offpac_il.Progress`, `PROGRESS_FIELDS`, `progress_csv`) and the checkpoint file
-(`offpac_il.save_checkpoint`, `load_checkpoint`); the MLP and the atomic writers (nets.py).
+object whose `policy` has `act(states, noise)` and `noise_dim`, as the agents here do);
+the progress file's columns (`offpac_il.PROGRESS_FIELDS`); the discriminator's loss
+(`lab.ablations.reward_loss_and_grads`, the learner's reward-learning ablation); the MLP
+(nets.py); and the run directory, its progress rows and checkpoint, the command line and
+one-line errors (harness.py).
 
 Actions: the Gaussian is unbounded. Its sample a = mu + sigma * noise is what the
 likelihood and the PPO ratio are taken of; the environment gets clip(a, -1, 1) mapped to
@@ -34,32 +36,30 @@ because the expert's actions are in [-1, 1] too (`GaussianSpaces`).
 The networks use nets.MLP's leaky-ReLU hidden units (one MLP type for the whole project),
 where openai/imitation used tanh.
 
-Run `python baselines.py bc --env Hopper-v4`, then
-`python baselines.py gail --env Hopper-v4` and
-`python baselines.py bc-gail --env Hopper-v4 --bc-init runs/bc-Hopper-v4-seed0`;
-`python baselines.py METHOD --help` lists every setting.
+From the repository root, run `python -m lab.baselines bc --env Hopper-v4`, then
+`python -m lab.baselines gail --env Hopper-v4` and
+`python -m lab.baselines bc-gail --env Hopper-v4 --bc-init runs/bc-Hopper-v4-seed0`;
+`python -m lab.baselines METHOD --help` lists every setting.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
-import io
 import json
 import math
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 import expert
+import harness
 import nets
 import offpac_il
-from expert import UserError
+from harness import UserError
+from lab import ablations
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -173,7 +173,7 @@ class GAILConfig(RunSettings):
     """Policy pairs and expert pairs (each) per discriminator step."""
 
 
-SAMPLINGS = offpac_il.SAMPLINGS
+SAMPLINGS = expert.SAMPLING_MODES
 
 
 def check_config(config: RunSettings) -> None:
@@ -238,7 +238,7 @@ class GaussianPolicy:
     """pi(a|s) = N(mu(s), diag exp(log_std)^2): mu an identity-head MLP, log_std a vector.
 
     `act(states, noise)` and `noise_dim` are what offpac_il.run_episode and
-    offpac_il.evaluate call, so this policy rolls out exactly like the learner's.
+    offpac_il.evaluate call (as `agent.policy`), so it rolls out exactly like the learner's.
     """
 
     mean_net: nets.MLP
@@ -301,7 +301,7 @@ class GaussianSpaces(offpac_il.Spaces):
 
 
 # ----------------------------------------------------------------------------------------
-# Optimiser: PPO and BC as published use Adam (nets.Adam, shared with sac.py).
+# Optimiser: PPO and BC as published use Adam (nets.Adam, shared with lab/sac.py).
 # ----------------------------------------------------------------------------------------
 
 
@@ -347,13 +347,13 @@ def discriminator_loss_and_grads(
         dL/dx = -sigmoid(-x) / N_E on expert rows,  sigmoid(x) / N_pi on policy rows.
 
     The learner's reward-learning ablation trains its r_omega with the same loss, so both
-    share one implementation: offpac_il.reward_loss_and_grads(..., "discriminator").
+    share one implementation: ablations.reward_loss_and_grads(..., "discriminator").
     Returns (loss, grads, {"d_expert", "d_policy"}: mean D on each side).
     """
     n_expert = len(expert_states)
     states = np.concatenate([expert_states, policy_states])  # (N_E + N_pi, dim s)
     actions = np.concatenate([expert_actions, policy_actions])  # (N_E + N_pi, dim A)
-    loss, grads, cache = offpac_il.reward_loss_and_grads(
+    loss, grads, cache = ablations.reward_loss_and_grads(
         discriminator, states, actions, n_expert, "discriminator"
     )
     d = cache.output[:, 0]
@@ -467,19 +467,8 @@ class Rollout:
         return states, actions, next_states, terminal.astype(np.float64), episode_end
 
 
-class NoBuffer:
-    """BC and GAIL carry no replay from one checkpoint to the next; this stands in for
-    the learner's ReplayBuffer in offpac_il.save_checkpoint and load_checkpoint."""
-
-    def state(self) -> dict[str, np.ndarray]:
-        return {}
-
-    def load_state(self, arrays) -> None:
-        pass
-
-
 # ----------------------------------------------------------------------------------------
-# What a checkpoint holds for each method (offpac_il.save_checkpoint calls `state`).
+# What a checkpoint holds for each method (Run.checkpoint saves `state`).
 # ----------------------------------------------------------------------------------------
 
 
@@ -594,9 +583,9 @@ class Run:
     expert_actions: np.ndarray  # (n, dim A), in [-1, 1]
     random_return: float
     expert_return: float
-    progress: offpac_il.Progress = field(default_factory=offpac_il.Progress)
+    progress: harness.Progress = field(default_factory=harness.Progress)
     rng: np.random.Generator | None = None  # the run's one Generator, set by `start`
-    started: float = 0.0
+    clock: harness.Clock | None = None  # wall time, log and checkpoint pacing, by `start`
 
     @classmethod
     def open(cls, config: RunSettings, resume: bool) -> Run:
@@ -604,11 +593,6 @@ class Run:
         check_config(config)
         method = method_of(config)
         run_dir = Path(config.run_dir or f"runs/{method}-{config.env}-seed{config.seed}")
-        if not resume and (run_dir / "checkpoint.npz").exists():
-            raise UserError(
-                f"{run_dir} already holds a run; continue it with --resume {run_dir}"
-                " or choose another --run-dir"
-            )
         env = expert.make_env(config.env)
         random_return, expert_return = expert.references_or_nan(config.env)
         if config.demos:
@@ -637,41 +621,34 @@ class Run:
         )
 
     def start(self, agent, rng: np.random.Generator, resume: bool) -> None:
-        """Create the run directory and write config.json, or restore the checkpoint."""
+        """Open (check, create, lock) the run directory once everything else is known to
+        be right, and write config.json, or restore the checkpoint."""
         self.rng = rng
-        self.run_dir.mkdir(parents=True, exist_ok=True)
+        harness.open_run_dir(self.run_dir, resume)
         if resume:
-            self.progress = offpac_il.load_checkpoint(self.run_dir, agent, NoBuffer(), rng)
+            self.progress = harness.load_checkpoint(self.run_dir, rng, agent.load_state)
             print(f"resumed {self.run_dir} at {self.progress.updates} updates", flush=True)
         else:
             settings = {"method": method_of(self.config), **dataclasses.asdict(self.config)}
-            nets.write_text(self.run_dir / "config.json", json.dumps(settings, indent=2) + "\n")
-        self.started = time.perf_counter() - self.progress.wall_seconds
-        self.pace = offpac_il.Pace(self.progress.interactions)
+            harness.write_config(self.run_dir, settings)
+        config = self.config
+        self.clock = harness.Clock(self.progress, config.checkpoint_every, config.log_every)
 
     def normalized(self, value: float) -> float:
         return expert.normalized_score(value, (self.random_return, self.expert_return))
 
-    def evaluation_due(self, counter: str, total: int) -> bool:
-        """At 0, at the first boundary past each eval_every, and once at the end.
-        counter: "interactions" (GAIL) or "updates" (BC), the progress field counted."""
-        progress, count = self.progress, getattr(self.progress, counter)
-        if count >= progress.eval_rounds * self.config.eval_every:
-            return True
-        # At the end, once: a finished run that is resumed adds no second final row.
-        return count >= total and not (progress.rows and progress.rows[-1][counter] == count)
-
-    def evaluate(self, policy: GaussianPolicy, agent, measured: dict) -> dict:
-        """Evaluate (offpac_il.evaluate: seeded episodes, their own Generator), append a
-        progress row and a diagnostics row, keep the best policy, checkpoint.
+    def evaluate(self, agent, measured: dict) -> dict:
+        """Evaluate agent.policy (offpac_il.evaluate: seeded episodes, their own
+        Generator), append a progress row and a diagnostics row, keep the best policy,
+        checkpoint.
 
         measured: the latest training numbers; those named in PROGRESS_FIELDS go to
         progress.csv, the method's own (BC_DIAGNOSTICS, GAIL_DIAGNOSTICS) to
         diagnostics.csv. Returns the progress row.
         """
-        progress, config = self.progress, self.config
+        progress, config, policy = self.progress, self.config, agent.policy
         returns, falls = offpac_il.evaluate(
-            self.env, policy, self.spaces, config, progress.eval_rounds
+            self.env, agent, self.spaces, config, progress.eval_rounds
         )
         # How the policy acts on the expert's own states (as the learner's rows record).
         rng = np.random.default_rng([config.seed, 2, progress.eval_rounds])
@@ -687,33 +664,17 @@ class Run:
             "interactions": progress.interactions,
             "updates": progress.updates,
         }
-        progress.eval_rounds += 1
-        progress.wall_seconds = time.perf_counter() - self.started
-        recent = progress.recent_returns
-        row = {
-            "interactions": progress.interactions,
-            "wall_seconds": round(progress.wall_seconds, 1),
-            "updates": progress.updates,
-            "episodes": progress.episodes,
-            "eval_return_mean": round(float(returns.mean()), 2),
-            "eval_return_std": round(float(returns.std()), 2),
-            "normalized_score": round(self.normalized(float(returns.mean())), 4),
-            "train_return": round(float(np.mean(recent)), 2) if recent else "",
-            **{
-                name: offpac_il.rounded(measured[name]) if name in measured else ""
-                for name in offpac_il.PROGRESS_FIELDS[8:]
-            },
-        }
-        progress.rows.append(row)
-        recent.clear()
+        score = self.normalized(float(returns.mean()))
+        self.clock.tick()
+        row = progress.record(returns, score, measured, offpac_il.PROGRESS_FIELDS)
         diagnostics = {
-            name: offpac_il.rounded(measured[name]) if name in measured else ""
+            name: harness.rounded(measured[name]) if name in measured else ""
             for name in self.diagnostic_fields
         }
         agent.diagnostics.append(diagnostics)
         if returns.mean() > progress.best_eval_return:
             progress.best_eval_return = float(returns.mean())
-            nets.save_arrays(self.run_dir / "policy_best.npz", policy.state("policy"))
+            harness.save_arrays(self.run_dir / "policy_best.npz", policy.state("policy"))
         shown = {k: v for k, v in diagnostics.items() if k not in ("interactions", "updates")}
         print(
             f"eval  {progress.interactions:>8d} steps  {progress.updates:>7d} updates"
@@ -730,15 +691,14 @@ class Run:
         return BC_DIAGNOSTICS if isinstance(self.config, BCConfig) else GAIL_DIAGNOSTICS
 
     def checkpoint(self, agent) -> None:
-        """offpac_il's checkpoint (networks, optimisers, Generator, counters, rows, then
+        """The checkpoint (networks, optimisers, Generator, counters, rows, then
         progress.csv), then diagnostics.csv: the method's own numbers per evaluation."""
-        self.progress.wall_seconds = time.perf_counter() - self.started
-        offpac_il.save_checkpoint(self.run_dir, agent, NoBuffer(), self.progress, self.rng)
-        out = io.StringIO()
-        writer = csv.DictWriter(out, fieldnames=self.diagnostic_fields, lineterminator="\n")
-        writer.writeheader()
-        writer.writerows(agent.diagnostics)
-        nets.write_text(self.run_dir / "diagnostics.csv", out.getvalue())
+        self.clock.tick()
+        fields = offpac_il.PROGRESS_FIELDS
+        harness.save_checkpoint(self.run_dir, agent.state(), self.rng, self.progress, fields)
+        diagnostics = harness.progress_csv(agent.diagnostics, self.diagnostic_fields)
+        harness.write_text(self.run_dir / "diagnostics.csv", diagnostics)
+        self.clock.checkpointed()
 
 
 # ----------------------------------------------------------------------------------------
@@ -747,7 +707,7 @@ class Run:
 # ----------------------------------------------------------------------------------------
 
 
-def train_bc(config: BCConfig, resume: bool = False) -> offpac_il.Progress:
+def train_bc(config: BCConfig, resume: bool = False) -> harness.Progress:
     """Maximum likelihood with early stopping. policy_final.npz holds the parameters with
     the best held-out likelihood (evaluated in the progress row at their update count,
     `best_update` in diagnostics.csv); policy_best.npz, as for every method, the best
@@ -772,7 +732,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> offpac_il.Progress:
     run.start(agent, rng, resume)
     progress, grad_norm = run.progress, math.nan
     while True:
-        if run.evaluation_due("updates", config.total_steps):
+        if progress.evaluation_due(config.eval_every, config.total_steps, "updates"):
             validation_nll = -float(policy.log_prob(states[held_out], actions[held_out])[0].mean())
             if validation_nll < agent.best_validation_nll:
                 agent.best_validation_nll, agent.best_update = validation_nll, progress.updates
@@ -787,7 +747,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> offpac_il.Progress:
                 "best_update": agent.best_update,
                 "policy_grad_norm": grad_norm,
             }
-            run.evaluate(policy, agent, {k: v for k, v in measured.items() if np.isfinite(v)})
+            run.evaluate(agent, {k: v for k, v in measured.items() if np.isfinite(v)})
         if (
             progress.updates >= config.total_steps
             or agent.evaluations_since_best >= config.patience
@@ -800,7 +760,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> offpac_il.Progress:
             agent.optimizer.step(policy.params, grads, config.lr)
             progress.updates += 1
 
-    nets.save_arrays(run.run_dir / "policy_final.npz", agent.best_policy.state("policy"))
+    harness.save_arrays(run.run_dir / "policy_final.npz", agent.best_policy.state("policy"))
     print(
         f"BC done after {progress.updates} updates: best held-out NLL "
         f"{agent.best_validation_nll:.4f} at {agent.best_update} updates, in policy_final.npz",
@@ -927,12 +887,12 @@ def load_bc_init(config: GAILConfig, policy: GaussianPolicy) -> None:
         different.append("demonstrations")
     if different:
         raise UserError(f"--bc-init {bc_dir}: its {', '.join(different)} differ from this run's")
-    policy.load_state(nets.load_arrays(bc_dir / "policy_final.npz"), "policy")
+    policy.load_state(harness.load_arrays(bc_dir / "policy_final.npz"), "policy")
     if config.bc_reset_log_std:
         policy.log_std[...] = config.log_std_init
 
 
-def train_gail(config: GAILConfig, resume: bool = False) -> offpac_il.Progress:
+def train_gail(config: GAILConfig, resume: bool = False) -> harness.Progress:
     """GAIL: iterations of whole-episode rollouts, discriminator steps and PPO epochs."""
     run = Run.open(config, resume)
     state_dim, action_dim = run.expert_states.shape[1], run.expert_actions.shape[1]
@@ -949,12 +909,10 @@ def train_gail(config: GAILConfig, resume: bool = False) -> offpac_il.Progress:
         nets.MLP.create([state_dim + action_dim, *config.discriminator_hidden, 1], "sigmoid", rng),
     )
     run.start(agent, rng, resume)
-    progress = run.progress
-    last_checkpoint = last_log = time.perf_counter()
+    progress, clock = run.progress, run.clock
     while True:
-        if run.evaluation_due("interactions", config.total_steps):
-            run.evaluate(policy, agent, progress.last_stats)
-            last_checkpoint = time.perf_counter()
+        if progress.evaluation_due(config.eval_every, config.total_steps):
+            run.evaluate(agent, progress.last_stats)  # and a checkpoint
         if progress.interactions >= config.total_steps:
             break
 
@@ -965,7 +923,7 @@ def train_gail(config: GAILConfig, resume: bool = False) -> offpac_il.Progress:
         while len(rollout) < config.rollout_steps:
             seed = int(rng.integers(2**31))
             episode_return, _ = offpac_il.run_episode(
-                run.env, policy, run.spaces, rng, seed, rollout
+                run.env, agent, run.spaces, rng, seed, rollout
             )
             rollout.end_episode()
             progress.recent_returns.append(episode_return)
@@ -975,33 +933,27 @@ def train_gail(config: GAILConfig, resume: bool = False) -> offpac_il.Progress:
         progress.updates += stats.pop("ppo_updates")
         progress.last_stats = stats
 
-        now = time.perf_counter()
-        progress.wall_seconds = now - run.started
-        if now - last_log >= config.log_every:
-            rate = run.pace.rate(progress.interactions, now)
-            eta = run.pace.eta_seconds(
-                config.total_steps - progress.interactions, progress.interactions, now
-            )
+        clock.tick()
+        if clock.log_due():
             print(
                 f"train {progress.interactions:>8d} steps"
                 f"  return {progress.recent_returns[-1]:8.1f}"
                 f"  D(expert) {stats['d_expert']:.3f}  D(policy) {stats['d_policy']:.3f}"
                 f"  reward {stats['reward_mean']:.3f}  kl {stats['approx_kl']:.4f}"
-                f"  {rate:6.0f} steps/s  ETA {eta / 60:6.1f} min",
+                f"  ETA {clock.eta_minutes(config.total_steps):6.1f} min",
                 flush=True,
             )
-            last_log = now
-        if nets.checkpoint_due(now - last_checkpoint, config.checkpoint_every):
+        if clock.checkpoint_due():
             run.checkpoint(agent)
-            last_checkpoint = now
-            nets.stop_if_requested()
+            harness.stop_if_requested()
 
-    nets.save_arrays(run.run_dir / "policy_final.npz", policy.state("policy"))
+    harness.save_arrays(run.run_dir / "policy_final.npz", policy.state("policy"))
     return progress
 
 
 # ----------------------------------------------------------------------------------------
-# Command line: `python baselines.py {bc,gail,bc-gail} [flags]`, flags from the dataclasses.
+# Command line: `python -m lab.baselines {bc,gail,bc-gail} [flags]`, flags from the
+# dataclasses.
 # ----------------------------------------------------------------------------------------
 
 METHODS = {
@@ -1012,8 +964,9 @@ METHODS = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = expert.CommandLineParser(
-        description="Baselines of Sasaki et al. (ICLR 2019), Sec. 5: BC, GAIL, BC+GAIL."
+    parser = harness.CommandLineParser(
+        prog="python -m lab.baselines",
+        description="Baselines of Sasaki et al. (ICLR 2019), Sec. 5: BC, GAIL, BC+GAIL.",
     )
     methods = parser.add_subparsers(dest="method", required=True, metavar="METHOD")
     for name, (cls, summary) in METHODS.items():
@@ -1023,7 +976,7 @@ def build_parser() -> argparse.ArgumentParser:
             description=summary,
             formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         )
-        expert.add_dataclass_flags(sub, cls)
+        harness.add_dataclass_flags(sub, cls)
         sub.add_argument(
             "--resume",
             metavar="RUN_DIR",
@@ -1052,50 +1005,33 @@ def config_from(args: argparse.Namespace) -> RunSettings:
     cls = METHODS[args.method][0]
     if args.resume:
         run_dir = Path(args.resume)
-        try:
-            saved = json.loads((run_dir / "config.json").read_text())
-        except (OSError, ValueError):
-            raise UserError(
-                f"{run_dir} holds no run to resume (config.json missing or unreadable)"
-            ) from None
-        if not (run_dir / "checkpoint.npz").exists():
+        saved = harness.read_config(run_dir)
+        if not (run_dir / harness.CHECKPOINT).exists():
             raise UserError(f"{run_dir} holds no checkpoint to resume from")
         method = saved.get("method")
         if method != args.method:
             raise UserError(
                 f"{run_dir} is a {method} run; resume it with "
-                f"`python baselines.py {method} --resume {run_dir}`"
+                f"`python -m lab.baselines {method} --resume {run_dir}`"
             )
         return saved_settings({**saved, "run_dir": str(run_dir)})
-    config = cls(
-        **{
-            f.name: (tuple(v) if isinstance(v, list) else v)
-            for f in dataclasses.fields(cls)
-            for v in [getattr(args, f.name)]
-        }
-    )
+    config = harness.config_from_args(cls, args)
     if args.method == "bc-gail" and not config.bc_init:
-        raise UserError("bc-gail needs --bc-init BC_RUN_DIR (a finished `baselines.py bc` run)")
+        raise UserError("bc-gail needs --bc-init BC_RUN_DIR (a finished `lab.baselines bc` run)")
     if args.method == "gail" and config.bc_init:
-        raise UserError("--bc-init makes the run BC+GAIL; use `python baselines.py bc-gail`")
+        raise UserError("--bc-init makes the run BC+GAIL; use `python -m lab.baselines bc-gail`")
     return config
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
+
+    def run() -> None:
         config = config_from(args)
         train = train_bc if isinstance(config, BCConfig) else train_gail
-        # Small matrices: one BLAS thread.
-        with threadpool_limits(limits=1, user_api="blas"), nets.stop_at_next_checkpoint():
-            train(config, resume=bool(args.resume))
-    except UserError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("interrupted; continue with --resume", file=sys.stderr)
-        return 130
-    return 0
+        train(config, resume=bool(args.resume))
+
+    return harness.run_cli(run)
 
 
 if __name__ == "__main__":

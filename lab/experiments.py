@@ -1,9 +1,10 @@
 """The sweep behind experiments.ipynb, and the figures it draws from finished runs.
 
 A run is a command line: a script, its arguments and a run directory (`RunSpec`). Every
-training script of the project (`offpac_il.py`, `baselines.py`) writes the same run
-directory: `config.json`, `progress.csv` (one row per evaluation), `checkpoint.npz` while it
-runs and `policy_final.npz` once it has finished. So a sweep is only bookkeeping:
+training script of the project (`offpac_il.py`, `lab/ablations.py`, `lab/baselines.py`)
+writes the same run directory (harness.py): `config.json`, `progress.csv` (one row per
+evaluation), `checkpoint.npz` while it runs and `policy_final.npz` once it has finished.
+So a sweep is only bookkeeping:
 
 - a run whose `policy_final.npz` exists is finished and skipped;
 - a run with a `checkpoint.npz` but no `policy_final.npz` was interrupted, and continues
@@ -16,7 +17,8 @@ their run's subprocess, or a Dask cluster's `Client(...).get_executor()`. A run 
 is reported in the returned statuses (with the tail of its log), never raised mid-sweep.
 
 Relative paths (scripts, run directories, sweep roots) are relative to the repository root,
-the folder of this file, on whichever machine runs them. A Dask cluster therefore needs the
+the folder above this file, on whichever machine runs them; a script of this package runs
+as `python -m lab.NAME` from there. A Dask cluster therefore needs the
 repository (and its requirements) on every worker, importable (start the workers from it
 with `PYTHONPATH=$PWD dask worker tcp://SCHEDULER:8786 --nthreads 1`: one run per worker
 thread, a learner run keeps two cores busy), and the run directories on a file system
@@ -29,22 +31,24 @@ seeds are pooled into their mean with a min-max band:
 - Figure 3: normalised score vs wall time and vs interactions (one setting);
 - Figure 4: normalised score vs interactions for the ablations.
 
-Command line:
+Command line, from the repository root:
 
-    python experiments.py sweep quick|full|ablations [--runs DIR] [--workers N]
-                                [--scheduler ADDRESS] [--methods BC GAIL ...] [--envs Hopper-v4 ...]
-    python experiments.py figures quick|full [--runs DIR [DIR ...]] [--out DIR]
-    python experiments.py curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination] [--x-max N]
-    python experiments.py hold RUN_DIR [RUN_DIR ...] [--since N] [--until N]
-    python experiments.py probe RUN_DIR [--episodes 3] [--steps 300]
-    python experiments.py evaluate RUN_DIR [--policy final|best|checkpoint|average|N|snapshots]
-                                           [--episodes 20]
-    python experiments.py gradient-noise RUN_DIR [--samples 8 128] [--draws 30]
-    python experiments.py average-snapshots RUN_DIR [--horizons 10000 30000] [--episodes 5]
+    python -m lab.experiments sweep quick|full|ablations [--runs DIR] [--workers N]
+                        [--scheduler ADDRESS] [--methods BC GAIL ...] [--envs Hopper-v4 ...]
+    python -m lab.experiments figures quick|full [--runs DIR [DIR ...]] [--out DIR]
+    python -m lab.experiments curves OUT.png RUN_DIR [RUN_DIR ...] [--label-by termination]
+                        [--x-max N]
+    python -m lab.experiments hold RUN_DIR [RUN_DIR ...] [--since N] [--until N]
+    python -m lab.experiments probe RUN_DIR [--episodes 3] [--steps 300]
+    python -m lab.experiments evaluate RUN_DIR [--policy final|best|checkpoint|average|N|snapshots]
+                        [--episodes 20]
+    python -m lab.experiments gradient-noise RUN_DIR [--samples 8 128] [--draws 30]
+    python -m lab.experiments average-snapshots RUN_DIR [--horizons 10000 30000] [--episodes 5]
 """
 
 from __future__ import annotations
 
+import argparse
 import csv
 import io
 import json
@@ -61,7 +65,10 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent
+import harness
+from harness import UserError
+
+ROOT = Path(__file__).resolve().parent.parent  # the repository root
 FINISHED = "policy_final.npz"  # written by a script only when its run has finished
 CHECKPOINT = "checkpoint.npz"  # present while a run can be resumed
 SPEC_FILE = "sweep.json"  # the spec that made the run, written by run_one
@@ -72,20 +79,21 @@ LOG_FILE = "sweep.log"  # the run's stdout and stderr, one block per attempt
 # ----------------------------------------------------------------------------------------
 
 # name -> (script, the arguments that select the method). The ablations are switches of
-# offpac_il.py (its Config: on_policy, reward_learning, policy_type; Sec. 5.3, Figure 4).
-# `missing_support` checks each against the script's --help, so a method whose script or
-# flag does not exist is reported and skipped, never faked; tests/test_offpac_il.py
-# checks that offpac_il.py accepts every selector here.
+# lab/ablations.py (its AblationConfig: on_policy, reward_learning, policy_type; Sec. 5.3,
+# Figure 4), whose other flags are offpac_il.py's. `missing_support` checks each against
+# the script's --help, so a method whose script or flag does not exist is reported and
+# skipped, never faked.
+LEARNER, ABLATIONS_SCRIPT, BASELINES = "offpac_il.py", "lab/ablations.py", "lab/baselines.py"
 METHODS: dict[str, tuple[str, tuple[str, ...]]] = {
-    "Ours": ("offpac_il.py", ()),
-    "BC": ("baselines.py", ("bc",)),
-    "GAIL": ("baselines.py", ("gail",)),
-    "BC+GAIL": ("baselines.py", ("bc-gail",)),
-    "Ours+OnP": ("offpac_il.py", ("--on-policy",)),
-    "Ours+IRL(D)": ("offpac_il.py", ("--reward-learning", "discriminator")),
-    "Ours+IRL(E)": ("offpac_il.py", ("--reward-learning", "entropy")),
-    "Ours+GP": ("offpac_il.py", ("--policy-type", "gaussian")),
-    "Ours+DP": ("offpac_il.py", ("--policy-type", "deterministic")),
+    "Ours": (LEARNER, ()),
+    "BC": (BASELINES, ("bc",)),
+    "GAIL": (BASELINES, ("gail",)),
+    "BC+GAIL": (BASELINES, ("bc-gail",)),
+    "Ours+OnP": (ABLATIONS_SCRIPT, ("--on-policy",)),
+    "Ours+IRL(D)": (ABLATIONS_SCRIPT, ("--reward-learning", "discriminator")),
+    "Ours+IRL(E)": (ABLATIONS_SCRIPT, ("--reward-learning", "entropy")),
+    "Ours+GP": (ABLATIONS_SCRIPT, ("--policy-type", "gaussian")),
+    "Ours+DP": (ABLATIONS_SCRIPT, ("--policy-type", "deterministic")),
 }
 # A method that starts from another's finished run of the same setting:
 # name -> (that method, the flag that names its run directory).
@@ -96,18 +104,28 @@ ABLATIONS = ("Ours+OnP", "Ours+IRL(D)", "Ours+IRL(E)", "Ours+GP", "Ours+DP")  # 
 # Quick mode: configurations that train in a few seconds each on 2 cores. They show that
 # the pipeline works end to end, not how the methods compare.
 QUICK_ARGS: dict[str, tuple[str, ...]] = {
-    "offpac_il.py": (
+    LEARNER: (
         *("--total-steps", "300", "--eval-every", "100", "--eval-episodes", "1"),
         *("--policy-hidden", "8", "8", "--critic-hidden", "16", "16"),
         *("--noise-samples", "4", "--target-samples", "2", "--batch-size", "8"),
     ),
-    "baselines.py": ("--total-steps", "300", "--eval-every", "100", "--eval-episodes", "1"),
+    BASELINES: ("--total-steps", "300", "--eval-every", "100", "--eval-episodes", "1"),
 }
+QUICK_ARGS[ABLATIONS_SCRIPT] = QUICK_ARGS[LEARNER]
 
 
 def resolve(path) -> Path:
     """A path relative to the repository root (absolute paths stay as they are)."""
     return ROOT / path
+
+
+def launcher(script: str) -> list[str]:
+    """How a script starts, from the repository root: `python -m lab.NAME` for a module
+    of a package there (so that it imports the core), `python SCRIPT` for any other."""
+    path = Path(script)
+    if not path.is_absolute() and len(path.parts) > 1 and path.suffix == ".py":
+        return [sys.executable, "-m", ".".join(path.with_suffix("").parts)]
+    return [sys.executable, script]
 
 
 # ----------------------------------------------------------------------------------------
@@ -117,7 +135,7 @@ def resolve(path) -> Path:
 
 @dataclass(frozen=True)
 class RunSpec:
-    """One run: `python SCRIPT ARGS --run-dir RUN_DIR`.
+    """One run: `python SCRIPT ARGS --run-dir RUN_DIR` (`launcher`).
 
     `labels` (method, env, sampling, trajectories, seed, ...) do not change the command;
     they are saved in the run directory's sweep.json and group runs in the figures.
@@ -139,7 +157,7 @@ class RunSpec:
 
     @property
     def subcommand(self) -> tuple[str, ...]:
-        """The leading positional arguments (`bc` in `baselines.py bc --seed 0`)."""
+        """The leading positional arguments (`bc` in `lab/baselines.py bc --seed 0`)."""
         leading = []
         for arg in self.args:
             if arg.startswith("-"):
@@ -149,8 +167,8 @@ class RunSpec:
 
     def command(self, resume: bool = False) -> list[str]:
         if resume:  # the run's saved config.json holds every other setting
-            return [sys.executable, self.script, *self.subcommand, "--resume", self.run_dir]
-        return [sys.executable, self.script, *self.args, "--run-dir", self.run_dir]
+            return [*launcher(self.script), *self.subcommand, "--resume", self.run_dir]
+        return [*launcher(self.script), *self.args, "--run-dir", self.run_dir]
 
 
 @dataclass
@@ -234,7 +252,7 @@ def _log_tail(run_dir: Path, offset: int, lines: int = 3) -> str:
 
 def default_workers() -> int:
     """Runs at a time in the default pool: one per two cores (a learner run keeps two
-    cores busy with its own row chunks, nets.map_chunks)."""
+    cores busy with its own row chunks, harness.map_row_chunks)."""
     return max(1, (os.cpu_count() or 1) // 2)
 
 
@@ -373,7 +391,7 @@ def grid(
     extra_args: dict[str, Sequence[str]] | None = None,
 ) -> list[RunSpec]:
     """Every combination of methods x envs x samplings x trajectories x seeds, in the
-    layout of `run_dir_of`. extra_args maps a script name (e.g. "offpac_il.py") to
+    layout of `run_dir_of`. extra_args maps a script (e.g. "offpac_il.py") to
     arguments added to each of its runs."""
     extra_args = extra_args or {}
     return [
@@ -441,7 +459,7 @@ def ablation_plan(root, env: str = "Hopper-v4", seeds: Sequence[int] = (0, 1, 2)
     trajectories, on one task; seed by seed, so a sweep cut short has every method."""
     specs = grid(
         root, ("Ours", *ABLATIONS), envs=[env], seeds=seeds,
-        extra_args={"offpac_il.py": ABLATION_SWEEP_ARGS},
+        extra_args={LEARNER: ABLATION_SWEEP_ARGS, ABLATIONS_SCRIPT: ABLATION_SWEEP_ARGS},
     )  # fmt: skip
     return sorted(specs, key=lambda spec: spec.labels["seed"])
 
@@ -458,7 +476,7 @@ def _help_text(script: str, subcommand: tuple[str, ...]) -> str | None:
     if not path.is_file():
         return None
     done = subprocess.run(
-        [sys.executable, str(path), *subcommand, "--help"],
+        [*launcher(script), *subcommand, "--help"],
         cwd=ROOT,
         capture_output=True,
         text=True,
@@ -530,8 +548,6 @@ def split_runnable(specs: Iterable[RunSpec]) -> tuple[list[RunSpec], dict[str, l
 
 def read_progress(run_dir) -> dict[str, np.ndarray]:
     """progress.csv as {column: float array}; empty cells become NaN."""
-    from expert import UserError
-
     try:
         with open(Path(run_dir) / "progress.csv") as f:
             rows = list(csv.DictReader(f))
@@ -546,12 +562,7 @@ def read_progress(run_dir) -> dict[str, np.ndarray]:
 
 
 def read_config(run_dir) -> dict:
-    from expert import UserError
-
-    try:
-        return json.loads((Path(run_dir) / "config.json").read_text())
-    except (OSError, ValueError):
-        raise UserError(f"{run_dir}: config.json missing or unreadable") from None
+    return harness.read_config(run_dir)
 
 
 @dataclass
@@ -567,40 +578,56 @@ class Run:
 LABEL_KEYS = ("method", "env", "sampling", "trajectories", "seed")
 
 
-# The switches of offpac_il.py's Config that turn Ours into one of its ablations.
+# The switches of lab/ablations.py's AblationConfig that turn Ours into an ablation.
 ABLATION_SWITCHES = ("on_policy", "reward_learning", "policy_type")
 
 
-def method_of(config: dict) -> str:
-    """The METHODS name of a run made by hand, from its config.json: baselines.py saves
-    its subcommand as "method"; an offpac_il.py run is Ours or the ablation whose switches
-    it has (a mix of switches is named by them)."""
+def learner_config(config: dict):
+    """The AblationConfig of a learner run's config.json (offpac_il.py's or
+    lab/ablations.py's): settings it lacks are the ones the run had."""
     import offpac_il
+    from lab import ablations
 
+    return harness.saved_config(ablations.AblationConfig, config, offpac_il.PAPER_SETTINGS)
+
+
+def selector_settings(selector: Sequence[str]) -> dict:
+    """The settings that a learner method's flags (its METHODS selector) give, the
+    others at their defaults: the switches of lab/ablations.py's AblationConfig."""
+    from lab import ablations
+
+    parser = argparse.ArgumentParser()
+    harness.add_dataclass_flags(parser, ablations.AblationConfig)
+    return vars(parser.parse_args(list(selector)))
+
+
+def method_of(config: dict) -> str:
+    """The METHODS name of a run made by hand, from its config.json: lab/baselines.py
+    saves its subcommand as "method"; a learner run is Ours or the ablation whose switches
+    it has (a mix of switches is named by them)."""
     if "method" in config:
         for name, (script, selector) in METHODS.items():
-            if script == "baselines.py" and selector == (config["method"],):
+            if script == BASELINES and selector == (config["method"],):
                 return name
         return str(config["method"])
-    config = asdict(offpac_il.saved_config(config))  # older runs lack newer switches
+    config = asdict(learner_config(config))  # older runs lack newer switches
     for name, (script, selector) in METHODS.items():
-        if script == "offpac_il.py":
-            flags = vars(offpac_il.parse_args(list(selector)))
+        if script in (LEARNER, ABLATIONS_SCRIPT):
+            flags = selector_settings(selector)
             if all(flags[k] == config[k] for k in ABLATION_SWITCHES):
                 return name
-    ours = vars(offpac_il.parse_args([]))
+    ours = selector_settings(())
     return "Ours+" + ",".join(f"{k}={config[k]}" for k in ABLATION_SWITCHES if config[k] != ours[k])
 
 
 def run_settings(run_dir) -> dict:
     """A run's config.json with its METHODS name as "method", and the settings added
     since the run started filled in with the values it ran with."""
-    import baselines
-    import offpac_il
+    from lab import baselines
 
     config = read_config(run_dir)
-    script = baselines.saved_settings if "method" in config else offpac_il.saved_config
-    return {**asdict(script(config)), "method": method_of(config)}
+    settings = baselines.saved_settings(config) if "method" in config else learner_config(config)
+    return {**asdict(settings), "method": method_of(config)}
 
 
 def load_run(run_dir) -> Run:
@@ -705,8 +732,6 @@ def aggregate(rows: Iterable[dict], by: Sequence[str], values: Sequence[str]) ->
 def write_csv(rows: Sequence[dict], path) -> Path:
     """rows (dicts with the same keys) as a CSV file, written atomically; floats to 5
     significant digits (progress.csv's precision)."""
-    import nets
-
     buffer = io.StringIO()
     if rows:
         writer = csv.DictWriter(buffer, fieldnames=list(rows[0]), lineterminator="\n")
@@ -716,7 +741,7 @@ def write_csv(rows: Sequence[dict], path) -> Path:
         )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    nets.write_text(path, buffer.getvalue())
+    harness.write_text(path, buffer.getvalue())
     return path
 
 
@@ -1023,8 +1048,6 @@ def hold_table(
         progress = read_progress(run_dir)
         if averaged:
             if "average_score" not in progress:
-                from expert import UserError
-
                 raise UserError(f"{run_dir}: no averaged PN's evaluations (--policy-average)")
             progress |= {
                 "normalized_score": progress["average_score"],
@@ -1105,6 +1128,25 @@ def draw_figures(runs_roots, out_dir, names=tuple(FIGURES)) -> dict[str, Path | 
     return {name: FIGURES[name](runs, out_dir / f"{name}.png") for name in names}
 
 
+def restored(run_dir):
+    """offpac_il.restore with the run's own variant (an ablation's, for a run of
+    lab/ablations.py): (config, spaces, expert_buffer, learner, replay, progress)."""
+    import offpac_il
+    from lab import ablations
+
+    config = learner_config(read_config(run_dir))
+    if not (Path(run_dir) / harness.CHECKPOINT).exists():
+        raise UserError(f"{run_dir} holds no checkpoint")
+    return offpac_il.restore(run_dir, ablations.variant_of(config))
+
+
+def fell(env, length: int) -> bool:
+    """Did an episode of `length` steps end by termination, before the time limit?
+    (Without a time limit nothing counts as a fall.)"""
+    time_limit = env.spec.max_episode_steps if env.spec is not None else None
+    return time_limit is not None and length < time_limit
+
+
 class _Recording:
     """An environment that keeps the observations it returns, so that an episode run by
     `offpac_il.run_episode` can be looked at afterwards."""
@@ -1135,9 +1177,10 @@ def probe_critic(run_dir, episodes: int = 3, steps: int = 300, seed: int = 2_000
     fraction is high and the cosine positive.
     """
     import expert
+    import nets
     import offpac_il
 
-    config, spaces, _, learner, _, _ = offpac_il.restore(run_dir)
+    config, spaces, _, learner, _, _ = restored(run_dir)
     env, policy_of_expert = _Recording(expert.make_env(config.env)), expert.load_expert(config.env)
     rng = np.random.default_rng(seed)
     rows = []
@@ -1150,9 +1193,18 @@ def probe_critic(run_dir, episodes: int = 3, steps: int = 300, seed: int = 2_000
             -1.0,
             1.0,
         ).astype(np.float32)  # (T, dim A)
-        a_policy = learner.act(s, np.zeros((len(s), learner.noise_dim), np.float32))
+        noise = np.zeros((len(s), learner.policy.noise_dim), np.float32)
+        a_policy = learner.policy.act(s, noise)  # pi(s, 0): (T, dim A)
         q_expert = learner.critic.forward((s, a_expert))[0][:, 0]
-        d_actions, cache = offpac_il.neg_log_q_action_gradient(learner.critic, s, a_policy, 1)
+        _, cache = learner.critic.forward((s, a_policy))  # logits (T, 1)
+        # d(-log q)/da at pi, row by row: the critic's part of gradient (6), Eq. (10).
+        (_, d_actions), _ = learner.critic.backward(
+            -nets.log_sigmoid_grad(cache.logits),
+            cache,
+            through_head=False,
+            param_grads=False,
+            input_grads=(False, True),
+        )
         q_policy = cache.output[:, 0]
         towards = a_expert - a_policy
         # The step of gradient (6) moves the action along -d_actions = d log q / da.
@@ -1189,11 +1241,12 @@ def gradient_noise(
     """
     import offpac_il
 
-    config, _, expert_buffer, learner, replay, _ = offpac_il.restore(run_dir)
+    config, _, expert_buffer, learner, replay, _ = restored(run_dir)
     rng = np.random.default_rng(seed)
 
     def flat_gradient(states: np.ndarray, z: int) -> np.ndarray:
-        noise = offpac_il.policy_noise(learner, len(states), z, rng)
+        rows = len(states) * learner.policy.samples_per_state(z)  # as offpac_il.policy_step
+        noise = rng.standard_normal((rows, learner.policy.noise_dim), np.float32)
         _, grads, _ = offpac_il.policy_loss_and_grads(learner, states, noise)
         return np.concatenate([g.ravel() for g in grads.values()]).astype(np.float64)
 
@@ -1237,7 +1290,6 @@ def policy_file(run_dir, policy: str) -> Path:
     a run with --policy-average), or a number: the policy snapshot taken at the evaluation
     after that many interactions."""
     import offpac_il
-    from expert import UserError
 
     if policy in POLICY_FILES:
         return Path(run_dir) / POLICY_FILES[policy]
@@ -1252,22 +1304,26 @@ def policy_file(run_dir, policy: str) -> Path:
 def policy_player(run_dir):
     """play(policy, episodes, seed): rows of a learner run's saved policy (see evaluate_policy)."""
     import expert
-    import nets
     import offpac_il
-    from expert import UserError
+    from lab import ablations
 
     run_dir = Path(run_dir)
     saved = read_config(run_dir)
     if "method" in saved:
-        raise UserError(f"{run_dir} is a {saved['method']} run; evaluate reads offpac_il.py runs")
-    config = offpac_il.saved_config({**saved, "run_dir": str(run_dir)})
+        raise UserError(f"{run_dir} is a {saved['method']} run; evaluate reads learner runs")
+    config = learner_config({**saved, "run_dir": str(run_dir)})
     env = expert.make_env(config.env)
-    spaces, _, learner, _ = offpac_il.prepare(config, env, np.random.default_rng(config.seed))
+    rng = np.random.default_rng(config.seed)
+    spaces, _, learner, _, _ = offpac_il.prepare(config, env, rng, ablations.variant_of(config))
     references = expert.references_or_nan(config.env)
 
     def play(policy: Path | dict, episodes: int, seed: int) -> list[dict]:
         """policy: a policy file, or the arrays it holds."""
-        learner.load_policy_state(policy if isinstance(policy, dict) else nets.load_arrays(policy))
+        if isinstance(policy, dict):
+            learner.policy.load_state(policy, "policy")
+        else:
+            arrays = harness.load_arrays(policy)
+            harness.restore_arrays(policy, lambda: learner.policy.load_state(arrays, "policy"))
         rng = np.random.default_rng(seed)
         rows = []
         for episode in range(episodes):
@@ -1277,7 +1333,7 @@ def policy_player(run_dir):
                     "seed": seed + episode,
                     "return": round(total, 1),
                     "length": length,
-                    "fell": offpac_il.fell(env, length),
+                    "fell": fell(env, length),
                     "normalized_score": expert.normalized_score(total, references),
                 }
             )
@@ -1295,7 +1351,6 @@ def evaluate_policy(run_dir, policy: str = "final", episodes: int = 20, seed: in
     score. A run evaluates 5 episodes from the same starts every time; this estimates
     how often the policy falls from starts it was never scored on.
     """
-    from expert import UserError
 
     read_config(run_dir)  # a run at all, before its files
     path = policy_file(run_dir, policy)
@@ -1310,7 +1365,6 @@ def evaluate_snapshots(run_dir, episodes: int = 20, seed: int = 3_000_000) -> li
     lowest normalised score and how many episodes fell. Set beside progress.csv, it
     tells an unlucky evaluation (five starts) from a policy that got worse."""
     import offpac_il
-    from expert import UserError
 
     read_config(run_dir)  # a run at all, before its files
     paths = sorted((Path(run_dir) / offpac_il.SNAPSHOTS).glob("*.npz"))
@@ -1352,15 +1406,13 @@ def averaged_snapshots(
     each snapshot, the exponential average of PN's snapshots so far (`exponential_averages`)
     for each horizon, played over the same `episodes` new starts. One row per snapshot:
     each horizon's mean normalised score and falls, and PN's own."""
-    import nets
     import offpac_il
-    from expert import UserError
 
     read_config(run_dir)
     paths = sorted((Path(run_dir) / offpac_il.SNAPSHOTS).glob("*.npz"))
     if len(paths) < 2:
         raise UserError(f"{run_dir} holds fewer than two policy snapshots")
-    snapshots = [(int(path.stem), nets.load_arrays(path)) for path in paths]
+    snapshots = [(int(path.stem), harness.load_arrays(path)) for path in paths]
     play = policy_player(run_dir)
     rows = [{"interactions": t} for t, _ in snapshots]
     for name, horizon in [("pn", None), *((f"h{h:g}", h) for h in horizons)]:
@@ -1388,6 +1440,14 @@ def played_summary(rows: list[dict]) -> dict:
     }
 
 
+def positive_number(text: str) -> float:
+    """A finite number above 0, such as a time constant ``1e4`` (NaN and inf refused)."""
+    value = float(text)
+    if not 0 < value < float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number above 0, got {text}")
+    return value
+
+
 def print_rows(rows: list[dict]) -> None:
     """A list of dicts as a ` | `-separated table on stdout."""
     print(" | ".join(rows[0]))
@@ -1396,8 +1456,6 @@ def print_rows(rows: list[dict]) -> None:
 
 
 def main(argv=None) -> int:
-    from expert import UserError
-
     try:
         return run_command(argv)
     except UserError as error:
@@ -1407,9 +1465,11 @@ def main(argv=None) -> int:
 
 def run_command(argv) -> int:
     """main's work; a user's mistake raises UserError."""
-    from expert import CommandLineParser, UserError, positive_int, positive_number
+    from expert import positive_int
 
-    parser = CommandLineParser(description=__doc__.splitlines()[0])
+    parser = harness.CommandLineParser(
+        prog="python -m lab.experiments", description=__doc__.splitlines()[0]
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     run = sub.add_parser("sweep", help="run (or resume, or skip) every run of a plan")
     run.add_argument(

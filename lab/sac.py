@@ -3,9 +3,10 @@
 Haarnoja, Zhou, Hartikainen, Tucker, Ha, Tan, Kumar, Zhu, Gupta, Abbeel & Levine, "Soft
 Actor-Critic Algorithms and Applications", 2018 (https://arxiv.org/abs/1812.05905): the
 version of SAC with twin Q-functions and a learned entropy temperature. Equation numbers
-below are that paper's. ARS (expert.py) trains the Hopper, HalfCheetah and Humanoid experts;
-it falls short of the targets on Walker2d and Ant within a practical budget on 2 cores, so
-those are trained here, through ``python expert.py train --env Walker2d-v4 --method sac``.
+below are that paper's. ARS (lab/ars.py) trains the Hopper, HalfCheetah and Humanoid
+experts; it falls short of the targets on Walker2d and Ant within a practical budget on 2
+cores, so those are trained here: ``python -m lab.sac --env Walker2d-v4`` from the
+repository root (``--help`` lists every setting).
 
 The paper's symbols and where they live:
 
@@ -41,37 +42,38 @@ hidden units are leaky ReLU (slope 0.01) instead of ReLU, and weights start from
 (Glorot) uniform instead of PyTorch's default. Observations are not normalised (neither
 library does for SAC).
 
-Files in the run directory (by default under the git-ignored ``runs/``):
-``config.json``, ``progress.csv`` (one row per evaluation), ``checkpoint.npz`` (everything
-needed to continue: networks, targets, optimisers, alpha, the Generator's state, counters
-and progress rows; written atomically at the end of an episode every ``checkpoint_every``
-seconds) and ``replay/`` (the replay buffer in float32, one file per checkpoint holding
-the transitions added since the previous one). The best evaluated policy goes
-to the expert file (default ``experts/<env>.npz``), in the format ``expert.load_expert``
-reads; evaluation is the deterministic policy a = tanh(mu(s)).
+Files in the run directory (by default under the git-ignored ``runs/``), written through
+harness.py: ``config.json``, ``progress.csv`` (one row per evaluation), ``checkpoint.npz``
+(everything needed to continue: networks, targets, optimisers, alpha, the Generator's
+state, counters and progress rows; written atomically at the end of an episode every
+``checkpoint_every`` seconds) and, SAC's own, ``replay/`` (the replay buffer in float32,
+one file per checkpoint holding the transitions added since the previous one). The best
+evaluated policy goes to the expert file (default ``experts/<env>.npz``), in the format
+``expert.load_expert`` reads; evaluation is the deterministic policy a = tanh(mu(s)).
 """
 
 from __future__ import annotations
 
-import csv
+import argparse
 import dataclasses
-import io
 import json
 import math
+import shlex
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 import expert
+import harness
 import nets
-from expert import UserError
+from harness import UserError
 
 # ----------------------------------------------------------------------------------------
-# Hyperparameters. expert.py makes one --flag per field, its help text the docstring.
+# Hyperparameters. The command line has one --flag per field, its help the docstring.
 # ----------------------------------------------------------------------------------------
 
 
@@ -108,18 +110,26 @@ class SACConfig:
 
 
 def check_config(config: SACConfig) -> None:
-    """Refuse settings that cannot work, with one clear message."""
-    for name in ("steps", "batch_size", "replay_size", "eval_every", "eval_episodes"):
-        if getattr(config, name) < 1:
-            raise UserError(f"--{name.replace('_', '-')} must be at least 1")
-    if not config.hidden or min(config.hidden) < 1:
-        raise UserError("--hidden needs at least one layer of at least one unit")
-    if config.learning_starts < 1:
-        raise UserError("--learning-starts must be at least 1 (the buffer must not be empty)")
-    if not 0.0 <= config.gamma < 1.0 or not 0.0 < config.tau <= 1.0:
-        raise UserError("--gamma must lie in [0, 1) and --tau in (0, 1]")
-    if config.lr <= 0 or config.initial_alpha <= 0:
-        raise UserError("--lr and --initial-alpha must be positive")
+    """Refuse settings that cannot work (NaN anywhere, a count below 1, ...), in one line."""
+    count, positive, seconds = (1, math.inf, "[)"), (0.0, math.inf, "()"), (0.0, math.inf, "[)")
+    harness.check_numbers(
+        config,
+        {
+            **dict.fromkeys(
+                ("steps", "hidden", "batch_size", "replay_size", "eval_every", "eval_episodes"),
+                count,
+            ),
+            "learning_starts": count,  # the buffer must not be empty at the first update
+            "gamma": (0.0, 1.0, "[)"),
+            "tau": (0.0, 1.0, "(]"),
+            "lr": positive,
+            "initial_alpha": positive,
+            "checkpoint_every": seconds,
+            "log_every": seconds,
+        },
+    )
+    if not config.hidden:
+        raise UserError("--hidden needs at least one layer")
 
 
 # ----------------------------------------------------------------------------------------
@@ -459,7 +469,7 @@ class ReplayBuffer:
             return
         rows = np.arange(first, self.added) % self.capacity
         Path(folder).mkdir(parents=True, exist_ok=True)
-        nets.save_arrays(
+        harness.save_arrays(
             Path(folder) / f"{first:010d}-{self.added:010d}.npz",
             {name: getattr(self, name)[rows] for name in self.FIELDS},
         )
@@ -487,7 +497,7 @@ class ReplayBuffer:
                 continue
             if first > filled:
                 break  # a gap: reported below
-            arrays = nets.load_arrays(path)
+            arrays = harness.load_arrays(path)
             rows = np.arange(filled, end) % self.capacity
             for name in self.FIELDS:
                 getattr(self, name)[rows] = arrays[name][filled - first : end - first]
@@ -538,13 +548,10 @@ class Progress:
     stat_count: int = 0
     rows: list[dict] = field(default_factory=list)
 
-
-def progress_csv(rows: list[dict]) -> str:
-    out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=PROGRESS_FIELDS, lineterminator="\n")
-    writer.writeheader()
-    writer.writerows(rows)
-    return out.getvalue()
+    @property
+    def interactions(self) -> int:
+        """The environment steps, by the name harness.Clock reads."""
+        return self.env_steps
 
 
 REPLAY_SEGMENTS = "replay"  # the folder of the replay buffer's segments in a run directory
@@ -559,20 +566,16 @@ def save_checkpoint(
     segments = Path(run_dir) / REPLAY_SEGMENTS
     replay.save_new_rows(segments)
     state = {**agent.state(), "replay/added": np.array(replay.added)}
-    nets.save_checkpoint(run_dir, state, rng, progress, progress_csv(progress.rows))
+    harness.save_checkpoint(run_dir, state, rng, progress, PROGRESS_FIELDS)
     replay.prune(segments)
 
 
 def load_checkpoint(run_dir: Path, agent: Agent, replay: ReplayBuffer, rng) -> Progress:
-    try:
-        arrays, counters, rows = nets.load_checkpoint(run_dir, rng)
+    def load(arrays: dict) -> None:
         agent.load_state(arrays)
         replay.load_rows(Path(run_dir) / REPLAY_SEGMENTS, int(arrays["replay/added"]))
-        return Progress(**counters, rows=rows)
-    except (OSError, ValueError, KeyError, EOFError) as error:
-        raise UserError(
-            f"{run_dir / 'checkpoint.npz'}: not a valid SAC checkpoint ({error})"
-        ) from None
+
+    return harness.load_checkpoint(run_dir, rng, load, Progress)
 
 
 def expert_policy(env_id: str, agent: Agent, low, high) -> expert.ExpertPolicy:
@@ -596,14 +599,22 @@ def default_run_dir(env_id: str, seed: int) -> Path:
     return expert.REPO_DIR / "runs" / f"sac-{env_id}-seed{seed}"
 
 
+# What a resumed run may change: its budget, and what only logging and checkpoints read.
+RESUMABLE_CHANGES = ("steps", "checkpoint_every", "log_every")
+
+
+def saved_config(settings: dict) -> SACConfig:
+    """The SACConfig of settings as JSON holds them (lists for tuples)."""
+    return SACConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()})
+
+
 def saved_run(run_dir: Path) -> dict:
     """A run directory's config.json: env_id, seed, expert_path and config (a SACConfig)."""
+    saved = harness.read_config(run_dir)
     try:
-        saved = json.loads((Path(run_dir) / "config.json").read_text())
-        settings = {k: tuple(v) if isinstance(v, list) else v for k, v in saved["sac"].items()}
-        saved["config"] = SACConfig(**settings)
-    except (OSError, ValueError, KeyError, TypeError):
-        raise UserError(f"{run_dir} holds no SAC run (config.json missing or unreadable)") from None
+        saved["config"] = saved_config(saved["sac"])
+    except (KeyError, TypeError, AttributeError):
+        raise UserError(f"{run_dir} holds no SAC run (its config.json is not one)") from None
     return saved
 
 
@@ -621,28 +632,23 @@ def train(
 
     A fresh run refuses a run directory that holds a checkpoint. `resume` continues the
     run from its last checkpoint exactly (same Generator state, same buffer); `config`
-    must then be the run's own (`saved_run`), and only its budget `steps` may differ.
+    must then be the run's own (`saved_run`), but for RESUMABLE_CHANGES (the budget).
     A run stopped by its budget in the middle of an episode, then extended, starts the
     extension with a fresh episode; a killed run continues exactly where its checkpoint is.
     """
     run_dir, expert_path = Path(run_dir), Path(expert_path)
-    checkpoint = run_dir / "checkpoint.npz"
+    check_config(config)
+    expert.make_env(env_id).close()  # a wrong environment is refused before anything is written
+    harness.open_run_dir(run_dir, resume)
     if resume:
         saved = saved_run(run_dir)
         if saved["env_id"] != env_id:
             raise UserError(f"{run_dir} is a run on {saved['env_id']}, not {env_id}")
-        if not checkpoint.exists():
-            raise UserError(f"{run_dir} holds no checkpoint to resume from")
-        if dataclasses.replace(config, steps=saved["config"].steps) != saved["config"]:
-            raise UserError(
-                f"--resume continues {run_dir} with its own settings; only the budget may change"
-            )
+        kept = {name: getattr(saved["config"], name) for name in RESUMABLE_CHANGES}
+        if dataclasses.replace(config, **kept) != saved["config"]:
+            changeable = ", ".join(map(harness.flag, RESUMABLE_CHANGES))
+            raise UserError(f"--resume continues {run_dir}; only {changeable} may change")
         seed = saved["seed"]
-    elif checkpoint.exists():
-        raise UserError(
-            f"{run_dir} already holds a run; continue it with --resume or choose another --run-dir"
-        )
-    check_config(config)
 
     env, eval_env = expert.make_env(env_id), expert.make_env(env_id)
     dim_s, dim_a = expert.env_dimensions(env)
@@ -651,7 +657,6 @@ def train(
     rng = np.random.default_rng(seed)  # the run's one Generator, passed explicitly
     agent = Agent.create(dim_s, dim_a, config, rng)
     replay = ReplayBuffer(config.replay_size, dim_s, dim_a)
-    run_dir.mkdir(parents=True, exist_ok=True)
     if resume:
         progress = load_checkpoint(run_dir, agent, replay, rng)
         log(f"resumed {run_dir} at {progress.env_steps} env steps")
@@ -663,7 +668,7 @@ def train(
             "expert_path": str(expert_path),
             "sac": dataclasses.asdict(config),
         }
-        nets.write_text(run_dir / "config.json", json.dumps(record, indent=2) + "\n")
+        harness.write_config(run_dir, record)
         # A fresh run must not replace a shipped expert with a worse one (as ARS).
         if expert_path.exists():
             try:
@@ -684,7 +689,7 @@ def train(
     def write_expert() -> None:
         expert_policy(env_id, agent, low, high).save(
             expert_path,
-            trainer="SAC (Haarnoja et al. 2018, arXiv:1812.05905), sac.py",
+            trainer="SAC (Haarnoja et al. 2018, arXiv:1812.05905), lab/sac.py",
             commands=list(progress.commands),
             seed=seed,
             hyperparameters=dataclasses.asdict(config),
@@ -704,7 +709,7 @@ def train(
             config.eval_episodes,
         )
         progress.eval_rounds += 1
-        progress.wall_seconds = time.perf_counter() - started
+        clock.tick()
         improved = returns.mean() > progress.best_return
         if improved:
             progress.best_return, progress.best_return_std = returns.mean(), returns.std()
@@ -723,7 +728,7 @@ def train(
                 "eval_return_std": round(float(returns.std()), 2),
                 "train_return": round(float(np.mean(recent)), 2) if recent else "",
                 **{
-                    name: float(f"{progress.stat_sums[name] / count:.5g}")
+                    name: harness.rounded(progress.stat_sums[name] / count)
                     if name in progress.stat_sums
                     else ""
                     for name in UPDATE_STATS
@@ -737,19 +742,19 @@ def train(
         )
         recent.clear()
         progress.stat_sums, progress.stat_count = {}, 0
-        nets.write_text(run_dir / "progress.csv", progress_csv(progress.rows))
+        harness.write_text(
+            run_dir / harness.PROGRESS, harness.progress_csv(progress.rows, PROGRESS_FIELDS)
+        )
         log(
             f"eval   env steps {progress.env_steps:9d}  wall {progress.wall_seconds:9.1f} s  "
             f"return {returns.mean():8.1f} ± {returns.std():6.1f}"
             + ("  (best, saved)" if improved else "")
         )
 
-    started = time.perf_counter() - progress.wall_seconds
-    last_checkpoint = last_log = time.perf_counter()
-    steps_at_log, updates_at_log = progress.env_steps, progress.updates
+    clock = harness.Clock(progress, config.checkpoint_every, config.log_every)
+    last_log, steps_at_log, updates_at_log = clock.start, progress.env_steps, progress.updates
     observation, episode_return = None, 0.0
-    # One BLAS thread: with the cores shared, two made an update 20x slower (README).
-    with threadpool_limits(limits=1, user_api="blas"), env, eval_env:
+    with env, eval_env:
         while progress.env_steps < config.steps:
             if observation is None:  # a new episode; checkpoints are taken only here
                 observation, _ = env.reset(seed=int(rng.integers(2**31)))
@@ -779,13 +784,14 @@ def train(
             if progress.env_steps % config.eval_every == 0 or progress.env_steps == config.steps:
                 evaluate_now()
 
-            now = time.perf_counter()
-            progress.wall_seconds = now - started
-            if now - last_log >= config.log_every:
+            clock.tick()
+            if clock.log_due():
+                now = time.perf_counter()
+                seconds = max(now - last_log, 1e-9)
                 log(
                     f"train  env steps {progress.env_steps:9d}  wall {progress.wall_seconds:9.1f} s"
-                    f"  {(progress.env_steps - steps_at_log) / (now - last_log):6.1f} steps/s"
-                    f"  {(progress.updates - updates_at_log) / (now - last_log):6.1f} updates/s"
+                    f"  {(progress.env_steps - steps_at_log) / seconds:6.1f} steps/s"
+                    f"  {(progress.updates - updates_at_log) / seconds:6.1f} updates/s"
                     f"  alpha {agent.alpha:.4f}  episodes {progress.episodes}"
                     + (
                         f"  recent return {np.mean(progress.recent_returns):.1f}"
@@ -799,10 +805,10 @@ def train(
                 progress.recent_returns.append(episode_return)
                 progress.episodes += 1
                 observation = None
-                if nets.checkpoint_due(now - last_checkpoint, config.checkpoint_every):
+                if clock.checkpoint_due():
                     save_checkpoint(run_dir, agent, replay, progress, rng)
-                    last_checkpoint = time.perf_counter()
-                    nets.stop_if_requested()
+                    clock.checkpointed()
+                    harness.stop_if_requested()
         save_checkpoint(run_dir, agent, replay, progress, rng)  # at the budget's end
     log(
         f"done: {progress.env_steps} env steps; best eval return {progress.best_return:.1f} "
@@ -810,3 +816,76 @@ def train(
         f"expert in {expert_path}"
     )
     return progress
+
+
+# ----------------------------------------------------------------------------------------
+# Command line: python -m lab.sac --env ENV [flags], one flag per SACConfig field.
+# ----------------------------------------------------------------------------------------
+
+SETTINGS = tuple(f.name for f in dataclasses.fields(SACConfig))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = harness.CommandLineParser(
+        prog="python -m lab.sac",
+        description=__doc__.splitlines()[0],
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    parser.add_argument("--env", required=True, help="gymnasium id, e.g. Walker2d-v4")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the run's one Generator")
+    parser.add_argument(
+        "--run-dir", default="", help="run directory; empty: runs/sac-<env>-seed<seed>"
+    )
+    parser.add_argument(
+        "--out", default="", help="expert file; empty: experts/<env>.npz (on --resume: the run's)"
+    )
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --run-dir exactly, with its settings (only "
+        + ", ".join(map(harness.flag, RESUMABLE_CHANGES))
+        + " may change)",
+    )
+    harness.add_dataclass_flags(parser, SACConfig)
+    return parser
+
+
+def run_from_args(args: argparse.Namespace, argv: list[str]) -> Progress:
+    run_dir = Path(args.run_dir) if args.run_dir else default_run_dir(args.env, args.seed)
+    if args.resume:
+        saved = saved_run(run_dir)
+        parser = build_parser()
+        for action in parser._actions:  # only the flags given (not set_defaults: argparse
+            action.default = argparse.SUPPRESS  # would parse its SUPPRESS string as a value)
+        given = {k: v for k, v in vars(parser.parse_args(argv)).items() if k in SETTINGS}
+        settings = harness.resumed_settings(saved["sac"], given, RESUMABLE_CHANGES)
+        config = SACConfig(
+            **{k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()}
+        )
+        seed, out = saved["seed"], Path(args.out or saved["expert_path"])
+    else:
+        config = harness.config_from_args(SACConfig, args)
+        seed, out = args.seed, Path(args.out) if args.out else expert.default_expert_path(args.env)
+    return train(
+        args.env,
+        seed,
+        config,
+        run_dir,
+        out,
+        resume=args.resume,
+        command=shlex.join(["python", "-m", "lab.sac", *argv]),
+        log=lambda line: print(line, flush=True),
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exit:  # --help, or a bad flag (its one line already printed)
+        return exit.code
+    return harness.run_cli(lambda: run_from_args(args, argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

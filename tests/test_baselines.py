@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from gradcheck import assert_gradient_close, numerical_gradient
-from helpers import interrupted_after, read_rows, run_script
+from helpers import interrupted_after, read_rows, run_module
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
@@ -22,9 +22,10 @@ from hypothesis import strategies as st
 from test_nets import FD_FLOOR
 from test_offpac_il import OBJECTIVE_EPS, OBJECTIVE_TOL, away_from_kinks
 
-import baselines
+import harness
 import nets
 import offpac_il
+from lab import baselines
 
 ROOT = Path(__file__).resolve().parent.parent
 STATE_DIM, ACTION_DIM = 3, 2
@@ -419,7 +420,7 @@ POLICIES = ("policy_best.npz", "policy_final.npz")
 
 
 def run_cli(*args, check=True):
-    return run_script("baselines.py", *args, check=check)
+    return run_module("lab.baselines", *args, check=check)
 
 
 read_csv = read_rows
@@ -446,7 +447,7 @@ def test_bc_command_line_writes_its_files(bc_run):
     # policy_final.npz holds the parameters with the best held-out likelihood.
     best = int(diagnostics[int(np.argmin(nll))]["updates"])
     assert diagnostics[-1]["best_update"] == str(best)
-    final = nets.load_arrays(bc_run / "policy_final.npz")
+    final = harness.load_arrays(bc_run / "policy_final.npz")
     assert set(final) == {"policy/W0", "policy/b0", "policy/W1", "policy/b1"} | {
         "policy/W2",
         "policy/b2",
@@ -470,7 +471,7 @@ def test_gail_and_bc_gail_command_lines_write_their_files(tmp_path, hopper_demos
         assert rows[-1]["policy_grad_norm"] != "" and rows[-1]["q_expert"] == ""
     # BC+GAIL's policy starts as the BC run's final policy, log sigma included; with
     # bc_reset_log_std, with the BC run's mean network and log sigma at log_std_init.
-    bc_final = nets.load_arrays(bc_run / "policy_final.npz")
+    bc_final = harness.load_arrays(bc_run / "policy_final.npz")
     assert np.all(bc_final["policy/log_std"] != -0.5)
     for reset in (False, True):
         config = baselines.GAILConfig(

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import experiments
-from experiments import ROOT, RunSpec
+from lab import experiments
+from lab.experiments import ROOT, RunSpec
 
 TINY = experiments.QUICK_ARGS["offpac_il.py"]
 
@@ -133,7 +133,7 @@ def test_sweep_reports_failures_and_runs_the_rest(tmp_path):
 def test_sweep_rejects_two_specs_with_one_run_dir(tmp_path):
     spec = RunSpec("offpac_il.py", (), tmp_path / "same")
     with pytest.raises(ValueError, match="share the run directory"):
-        experiments.sweep([spec, RunSpec("baselines.py", ("bc",), tmp_path / "same")])
+        experiments.sweep([spec, RunSpec("lab/baselines.py", ("bc",), tmp_path / "same")])
 
 
 def test_sweep_on_a_dask_local_cluster(tmp_path):
@@ -160,11 +160,16 @@ def test_sweep_on_a_dask_local_cluster(tmp_path):
 
 
 def test_run_spec_command_line():
-    spec = RunSpec("baselines.py", ("bc-gail", "--seed", 3, "--bc-init", "x"), "runs/y")
+    spec = RunSpec("lab/baselines.py", ("bc-gail", "--seed", 3, "--bc-init", "x"), "runs/y")
     assert spec.args == ("bc-gail", "--seed", "3", "--bc-init", "x")
     assert spec.subcommand == ("bc-gail",)
-    assert spec.command()[1:] == ["baselines.py", *spec.args, "--run-dir", "runs/y"]
-    assert spec.command(resume=True)[1:] == ["baselines.py", "bc-gail", "--resume", "runs/y"]
+    # A module of the lab package runs as `python -m lab.NAME` from the repository root.
+    module = ["-m", "lab.baselines"]
+    assert spec.command()[1:] == [*module, *spec.args, "--run-dir", "runs/y"]
+    assert spec.command(resume=True)[1:] == [*module, "bc-gail", "--resume", "runs/y"]
+    # A top-level script, or one given by its absolute path, runs as `python SCRIPT`.
+    assert RunSpec("offpac_il.py", (), "r").command()[1:] == ["offpac_il.py", "--run-dir", "r"]
+    assert RunSpec("/x/lab/a.py", (), "r").command()[1:] == ["/x/lab/a.py", "--run-dir", "r"]
 
 
 # ----------------------------------------------------------------------------------------
@@ -386,7 +391,10 @@ def test_notebook_runs_in_quick_mode(tmp_path):
 
 def test_module_runs_as_a_script():
     done = subprocess.run(
-        [sys.executable, "experiments.py", "--help"], cwd=ROOT, capture_output=True, text=True
+        [sys.executable, "-m", "lab.experiments", "--help"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
     )
     assert done.returncode == 0 and "sweep" in done.stdout and "figures" in done.stdout
 
@@ -438,14 +446,9 @@ def test_a_run_kept_without_its_policies_is_finished_once_it_reached_its_budget(
 def test_a_run_made_by_hand_is_named_by_its_config():
     """load_run names a run without sweep.json from config.json: every method of METHODS
     comes back as itself, and a mix of ablation switches is named by those switches."""
-    import dataclasses
-
-    import offpac_il
-
     for name, (script, selector) in experiments.METHODS.items():
-        if script == "offpac_il.py":
-            args = vars(offpac_il.parse_args(list(selector)))
-            config = {f.name: args[f.name] for f in dataclasses.fields(offpac_il.Config)}
+        if script != experiments.BASELINES:  # offpac_il.py or lab/ablations.py
+            config = experiments.selector_settings(selector)
         else:
             config = {"method": selector[0]}
         assert experiments.method_of(config) == name
@@ -596,7 +599,9 @@ def test_ablation_plan_runs_every_ablation_at_its_budget_seed_by_seed():
     assert [s.labels["seed"] for s in specs] == [0] * 6 + [1] * 6 + [2] * 6
     assert {s.labels["method"] for s in specs} == {"Ours", *experiments.ABLATIONS}
     for s in specs:
-        assert s.script == "offpac_il.py" and s.labels["env"] == "Hopper-v4"
+        ours = s.labels["method"] == "Ours"
+        assert s.script == (experiments.LEARNER if ours else experiments.ABLATIONS_SCRIPT)
+        assert s.labels["env"] == "Hopper-v4"
         assert (s.labels["sampling"], s.labels["trajectories"]) == ("sparse", 4)
         assert s.args[-len(experiments.ABLATION_SWEEP_ARGS) :] == experiments.ABLATION_SWEEP_ARGS
     assert len({s.run_dir for s in specs}) == len(specs)

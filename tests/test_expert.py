@@ -1,4 +1,5 @@
-"""Tests for expert.py: demonstrations, their validation, the CLI's errors, Minari import, ARS.
+"""Tests for expert.py: demonstrations, their validation, the CLI's errors, Minari import,
+the shipped experts and Table 1 (ARS training: tests/test_ars.py).
 
 Tests that need an expert use a hand-made linear controller for InvertedPendulum-v4 (it
 balances the pole for the full 1000 steps), so they never wait for a long training run; only
@@ -250,20 +251,16 @@ def test_cli_bad_demo_file_is_one_line_and_exit_2(tmp_path):
 
 
 def test_cli_discrete_env_is_one_line_and_exit_2(tmp_path):
-    result = run_cli(
-        "train",
-        "--env",
-        "CartPole-v1",
-        "--workers",
-        "1",
-        "--checkpoint",
-        str(tmp_path / "c.npz"),
-        "--out",
-        str(tmp_path / "e.npz"),
-    )
+    result = run_cli("demos", "--env", "CartPole-v1", "--out", str(tmp_path / "d.npz"))
     assert result.returncode == 2
     assert result.stderr.count("\n") == 1 and "Discrete(2)" in result.stderr
     assert list(tmp_path.iterdir()) == []  # nothing half-written
+
+
+def test_cli_has_no_training_commands():
+    result = run_cli("--help")
+    assert result.returncode == 0 and "demos" in result.stdout and "table" in result.stdout
+    assert "train" not in result.stdout  # the expert trainers are lab/ars.py and lab/sac.py
 
 
 # --- Minari import -----------------------------------------------------------------------------
@@ -345,109 +342,6 @@ def test_minari_import_round_trip(tmp_path, monkeypatch, pendulum_expert):
         == 2
     )
     assert not (tmp_path / "none.npz").exists()
-
-
-# --- ARS ---------------------------------------------------------------------------------------
-
-
-def fresh_pendulum_run() -> expert.ARSState:
-    config = expert.ARSConfig(
-        step_size=0.05, directions=4, top=2, noise=0.1, survival_bonus=0.0, eval_episodes=3
-    )
-    return expert.ARSState(
-        env_id=PENDULUM,
-        seed=0,
-        config=config,
-        weights=np.zeros((1, 4)),
-        statistics=expert.ObservationStatistics(4),
-        rng=np.random.default_rng(0),
-    )
-
-
-def test_ars_improves_and_resumes_exactly(tmp_path):
-    runner = expert.RolloutRunner(PENDULUM, workers=1)
-    try:
-        untrained = expert.evaluate_linear(fresh_pendulum_run(), runner).mean()
-        straight = fresh_pendulum_run()
-        for _ in range(6):
-            expert.ars_iteration(straight, runner)
-        # The same six iterations, stopped after three and continued from the checkpoint.
-        interrupted = fresh_pendulum_run()
-        for _ in range(3):
-            expert.ars_iteration(interrupted, runner)
-        interrupted.save(tmp_path / "checkpoint.npz")
-        resumed = expert.ARSState.load(tmp_path / "checkpoint.npz")
-        for _ in range(3):
-            expert.ars_iteration(resumed, runner)
-        trained = expert.evaluate_linear(straight, runner).mean()
-    finally:
-        runner.close()
-    np.testing.assert_array_equal(resumed.weights, straight.weights)
-    np.testing.assert_array_equal(resumed.statistics.std(), straight.statistics.std())
-    assert resumed.env_steps == straight.env_steps and resumed.iteration == 6
-    assert trained > untrained + 20, (untrained, trained)
-
-
-def test_train_command_writes_expert_and_checkpoint(tmp_path, capsys):
-    checkpoint, out = tmp_path / "pendulum.ckpt.npz", tmp_path / "pendulum.npz"
-    arguments = [
-        "train",
-        "--env",
-        PENDULUM,
-        "--workers",
-        "1",
-        "--steps",
-        "3000",
-        "--directions",
-        "4",
-        "--top",
-        "2",
-        "--step-size",
-        "0.05",
-        "--noise",
-        "0.1",
-        "--eval-every",
-        "2",
-        "--checkpoint",
-        str(checkpoint),
-        "--out",
-        str(out),
-    ]
-    assert expert.main(arguments) == 0
-    printed = capsys.readouterr().out
-    assert "env steps" in printed and "eval return" in printed
-    policy = expert.load_expert(PENDULUM, out)
-    assert policy.metadata["seed"] == 0 and "train --env" in policy.metadata["commands"][0]
-    assert policy.metadata["env_steps"] > 0 and policy.metadata["wall_seconds"] >= 0
-    assert policy.act(np.zeros(4)).shape == (1,)
-    # Resuming with a bigger budget continues; changing the settings is refused.
-    assert (
-        expert.main(
-            [
-                "train",
-                "--env",
-                PENDULUM,
-                "--workers",
-                "1",
-                "--steps",
-                "4000",
-                "--resume",
-                "--checkpoint",
-                str(checkpoint),
-                "--out",
-                str(out),
-            ]
-        )
-        == 0
-    )
-    assert expert.ARSState.load(checkpoint).env_steps >= 4000
-    assert (
-        expert.main(
-            arguments[:5]
-            + ["--resume", "--noise", "0.2", "--checkpoint", str(checkpoint), "--out", str(out)]
-        )
-        == 2
-    )
 
 
 # --- shipped experts and the reference table -----------------------------------------------------

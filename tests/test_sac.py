@@ -1,4 +1,4 @@
-"""sac.py: finite-difference checks of every gradient SAC uses, each shown to fail on a
+"""lab/sac.py: finite-difference checks of every gradient SAC uses, each shown to fail on a
 wrong gradient; the targets; resume; learning on a small task; the expert file and CLI.
 
 Gradient checks run in float64 on tiny networks (tests/gradcheck.py): the critics' TD loss
@@ -28,8 +28,9 @@ from test_nets import FD_FLOOR
 from test_offpac_il import OBJECTIVE_EPS, OBJECTIVE_TOL, away_from_kinks
 
 import expert
+import harness
 import nets
-import sac
+from lab import sac
 
 ROOT = Path(__file__).resolve().parent.parent
 DIM_S, DIM_A = 3, 2
@@ -397,7 +398,7 @@ def read_progress(run_dir: Path) -> list[dict]:
 
 
 def final_params(run_dir: Path) -> dict[str, np.ndarray]:
-    arrays = nets.load_arrays(run_dir / "checkpoint.npz")
+    arrays = harness.load_arrays(run_dir / "checkpoint.npz")
     return {k: v for k, v in arrays.items() if not k.startswith(("rows", "counters"))}
 
 
@@ -429,7 +430,7 @@ def test_resume_reproduces_an_uninterrupted_run(tmp_path, monkeypatch):
         patch.setattr(sac, "update", interrupted_after(250))
         with pytest.raises(KeyboardInterrupt):
             run_tiny(interrupted)
-    counters = json.loads(str(nets.load_arrays(interrupted / "checkpoint.npz")["counters"]))
+    counters = json.loads(str(harness.load_arrays(interrupted / "checkpoint.npz")["counters"]))
     assert 200 < counters["env_steps"] < 450  # checkpointed after some updates, not at 0
     run_tiny(interrupted, resume=True)
 
@@ -534,7 +535,7 @@ def test_expert_files_of_both_kinds_and_broken_ones(tmp_path):
     assert expert.load_expert("Hopper-v4").kind == expert.ARS_LINEAR
     path = tmp_path / "sac.npz"
     balancing_sac_expert().save(path)
-    arrays = nets.load_arrays(path)
+    arrays = harness.load_arrays(path)
     for name, change in {
         "unknown kind": {"kind": np.array("transformer")},
         "missing layer": {"policy/W1": None},
@@ -545,13 +546,13 @@ def test_expert_files_of_both_kinds_and_broken_ones(tmp_path):
         for key in [k for k, v in change.items() if v is None]:
             broken.pop(key)
         broken_path = tmp_path / f"{name.replace(' ', '-')}.npz"
-        nets.save_arrays(broken_path, broken)
+        harness.save_arrays(broken_path, broken)
         with pytest.raises(expert.UserError, match=broken_path.name):
             expert.load_expert(PENDULUM, broken_path)
 
 
 # ---------------------------------------------------------------------------------------
-# The command line: python expert.py train --method sac.
+# The command line: python -m lab.sac.
 # ---------------------------------------------------------------------------------------
 
 TINY_FLAGS = [
@@ -562,30 +563,30 @@ TINY_FLAGS = [
 
 
 def train_command(run_dir: Path, *extra: str) -> list[str]:
-    return ["train", "--env", PENDULUM, "--method", "sac", "--run-dir", str(run_dir),
+    return ["--env", PENDULUM, "--run-dir", str(run_dir),
             "--out", str(run_dir.parent / f"{run_dir.name}.npz"), *extra]  # fmt: skip
 
 
 def test_command_line_trains_resumes_and_refuses_mixed_flags(tmp_path, capsys):
     run_dir = tmp_path / "run"
-    assert expert.main(train_command(run_dir, *TINY_FLAGS, "--log-every", "0")) == 0
+    assert sac.main(train_command(run_dir, *TINY_FLAGS, "--log-every", "0")) == 0
     printed = capsys.readouterr().out
     assert "eval   env steps       200" in printed and "updates/s" in printed
     policy = expert.load_expert(PENDULUM, tmp_path / "run.npz")
     assert policy.kind == expert.SAC_MLP and policy.metadata["seed"] == 0
-    assert "--method sac" in policy.metadata["commands"][0]
+    assert "lab.sac --env" in policy.metadata["commands"][0]
     # A bigger budget continues the run; other settings cannot change on resume.
-    assert expert.main(train_command(run_dir, "--resume", "--steps", "800")) == 0
+    assert sac.main(train_command(run_dir, "--resume", "--steps", "800")) == 0
     assert [r["env_steps"] for r in read_progress(run_dir)] == ["200", "400", "600", "800"]
     capsys.readouterr()
     for refused, message in [
-        (train_command(run_dir, "--resume", "--lr", "1e-3"), "only --steps"),
+        (train_command(run_dir, "--resume", "--lr", "1e-3"), "may change only: --steps"),
         (train_command(run_dir, *TINY_FLAGS), "already holds a run"),
-        (train_command(tmp_path / "new", "--directions", "8"), "--directions"),
-        (["train", "--env", PENDULUM, "--hidden", "8"], "--hidden"),
-        (train_command(tmp_path / "absent", "--resume"), "holds no SAC run"),
+        (train_command(tmp_path / "new", "--directions", "8"), "--directions"),  # an ARS flag
+        (train_command(tmp_path / "new", "--gamma", "nan"), "--gamma"),
+        (train_command(tmp_path / "absent", "--resume"), "holds no run"),
     ]:
-        assert expert.main(refused) == 2
+        assert sac.main(refused) == 2
         error = capsys.readouterr().err
         assert error.startswith("error: ") and message in error and error.count("\n") == 1
 
@@ -595,7 +596,7 @@ def test_kill_and_resume_from_the_command_line(tmp_path):
     as a run never killed."""
     run_dir = tmp_path / "killed"
     process = subprocess.Popen(
-        [sys.executable, str(ROOT / "expert.py"), *train_command(run_dir, *TINY_FLAGS)],
+        [sys.executable, "-m", "lab.sac", *train_command(run_dir, *TINY_FLAGS)],
         cwd=ROOT,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -605,7 +606,7 @@ def test_kill_and_resume_from_the_command_line(tmp_path):
         time.sleep(0.02)
     process.kill()
     process.wait()
-    assert expert.main(train_command(run_dir, "--resume")) == 0
+    assert sac.main(train_command(run_dir, "--resume")) == 0
     whole = tmp_path / "whole"
-    assert expert.main(train_command(whole, *TINY_FLAGS)) == 0
+    assert sac.main(train_command(whole, *TINY_FLAGS)) == 0
     assert read_progress(run_dir) == read_progress(whole)

@@ -1,6 +1,6 @@
 """Time one SAC update (sac.update) at Walker2d-v4 sizes, against its GEMM floor.
 
-    python -m benchmarks.sac_update [--repeats 300] [--threads 1]
+    python -m lab.benchmarks.sac_update [--repeats 300] [--threads 1]
 
 dim S = 17, dim A = 6, 256-256 networks, batch 256, float32: the settings of the
 Walker2d-v4 expert run. Reports wall and CPU time per update (CPU time is what the
@@ -19,8 +19,8 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-import sac
-from benchmarks.update import time_gemm_floor
+from lab import sac
+from lab.benchmarks.update import time_gemm_floor
 
 STATE_DIM, ACTION_DIM = 17, 6
 

@@ -1,6 +1,6 @@
 """Time one full update (critic step, target update, policy step) at the paper's sizes.
 
-    python -m benchmarks.update [--repeats 20] [--noise-samples 128] [--target-samples 8]
+    python -m lab.benchmarks.update [--repeats 20] [--noise-samples 128] [--target-samples 8]
 
 Hopper-v4 dimensions (dim S = 11, dim A = 3), PN 100-100, QN 500-500, minibatch 64,
 128 noise samples per state: 8 192 rows through the critic and back per policy step.
@@ -22,13 +22,15 @@ import tracemalloc
 import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
 
+import harness
 import offpac_il
 
 STATE_DIM, ACTION_DIM = 11, 3
 
 
 def make_problem(config: offpac_il.Config, rng: np.random.Generator):
-    learner = offpac_il.Learner.create(STATE_DIM, STATE_DIM, ACTION_DIM, config, rng)
+    policy = offpac_il.BoundedPolicy.create(STATE_DIM, STATE_DIM, ACTION_DIM, config, rng)
+    learner = offpac_il.Learner.create(policy, STATE_DIM, ACTION_DIM, config, rng)
     replay = offpac_il.ReplayBuffer(config.replay_size, STATE_DIM, ACTION_DIM)
     for _ in range(config.replay_size):
         replay.add(
@@ -121,6 +123,7 @@ def main() -> None:
     parser.add_argument("--noise-samples", type=int, default=128)
     parser.add_argument("--target-samples", type=int, default=offpac_il.Config.target_samples)
     args = parser.parse_args()
+    harness.reuse_freed_memory()  # as a training run does
     config = offpac_il.Config(noise_samples=args.noise_samples, target_samples=args.target_samples)
     rng = np.random.default_rng(0)
     learner, replay, expert_buffer = make_problem(config, rng)
@@ -128,7 +131,7 @@ def main() -> None:
     def one_update():
         offpac_il.update(learner, expert_buffer, replay, config, 0, rng)
 
-    # As in training: BLAS on one thread, parallelism from map_chunks over row chunks.
+    # As in training: BLAS on one thread, parallelism from harness.map_row_chunks.
     with threadpool_limits(limits=1, user_api="blas"):
         update_s = median_seconds(one_update, args.repeats)
         faults_before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
@@ -153,7 +156,7 @@ def main() -> None:
     print(f"update:      {update_s * 1e3:7.1f} ms (median of {args.repeats})")
     print(f"GEMM floor:  {floor_s * 1e3:7.1f} ms (the update's matrix products alone)")
     print(f"peak memory: {peak_bytes / 2**20:7.1f} MiB allocated by one update")
-    print(f"page faults: {page_faults:7d} in one update (see nets._reuse_freed_memory)")
+    print(f"page faults: {page_faults:7d} in one update (see harness.reuse_freed_memory)")
     print(
         f"update_ms={update_s * 1e3:.1f} gemm_floor_ms={floor_s * 1e3:.1f} "
         f"floor_fraction={floor_s / update_s:.3f}"
