@@ -38,15 +38,14 @@ from harness import UserError
 
 
 @dataclass
-class Config:
-    """Hyperparameters: Appendix B unless said otherwise. Each field is a --flag."""
+class RunConfig:
+    """What every imitation run sets (the learner's and lab/baselines.py's): the task, the
+    demonstrations, the evaluation and the run directory. Each field is a --flag."""
 
     env: str = "Hopper-v4"
     """Gymnasium environment id (Box observations, bounded Box actions)."""
     seed: int = 0
     """Seed of the run's single numpy Generator and of the environment."""
-    total_steps: int = 300_000
-    """Interaction budget; the learning rates decrease linearly to 0 over it."""
     demos: str = ""
     """Demonstration file (.npz); empty: the shipped expert's default demonstrations."""
     trajectories: int = 4
@@ -55,6 +54,26 @@ class Config:
     """Default demonstrations: sparse (100 random triplets per trajectory) or dense."""
     demo_seed: int = 0
     """Seed of the default demonstrations."""
+    standardize: bool = True
+    """Standardise states by the demonstrations' mean and std (+1e-3), as DAC/ValueDICE."""
+    eval_episodes: int = 5
+    """Episodes per evaluation (stochastic policy, true reward)."""
+    run_dir: str = ""
+    """Run directory; empty: a new one under runs/ named by the task and seed."""
+    checkpoint_every: float = 120.0
+    """Seconds between checkpoints (taken at episode ends); 0: after every episode."""
+    log_every: float = 10.0
+    """Seconds between training progress lines (evaluations always print)."""
+
+
+@dataclass
+class Config(RunConfig):
+    """The learner's hyperparameters: Appendix B unless said otherwise."""
+
+    total_steps: int = 300_000
+    """Interaction budget; the learning rates decrease linearly to 0 over it."""
+    eval_every: int = 5_000
+    """Interactions between evaluations."""
     policy_hidden: tuple[int, ...] = (100, 100)
     """PN's hidden layer sizes."""
     critic_hidden: tuple[int, ...] = (500, 500)
@@ -82,29 +101,17 @@ class Config:
     # The paper is silent; 8 cost about a tenth of an update (lab/benchmarks/update.py).
     target_samples: int = 8
     """Noise vectors z per next state in the critic's target E_z q'(s', pi(s', z))^gamma."""
-    # The paper is silent on both (README, Deviations, has the measurements): zero
-    # continuation is the only treatment that makes a fall worse than staying up, and
-    # without standardisation Hopper reached 0.91 at 41 k and fell to 0.03 by 75 k.
+    # The paper is silent (README, Deviations, has the measurements): zero continuation
+    # is the only treatment that makes a fall worse than staying up. Standardisation
+    # (RunConfig): without it Hopper reached 0.91 at 41 k and fell to 0.03 by 75 k.
     termination: str = "zero"
     """At a terminal s': bootstrap (literal Alg. 1), absorbing (DAC), or zero (q'^gamma=0)."""
-    standardize: bool = True
-    """Standardise states by the demonstrations' mean and std (+1e-3), as DAC/ValueDICE."""
     policy_expert_states: float = 0.5
     """Fraction of the policy step's states drawn from the demonstrations (paper: 0)."""
     exploration_noise: float = 0.0
     """Std of Gaussian noise added to executed actions in training (paper: 0; HalfCheetah)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
-    eval_every: int = 5_000
-    """Interactions between evaluations."""
-    eval_episodes: int = 5
-    """Episodes per evaluation (stochastic policy, true reward)."""
-    run_dir: str = ""
-    """Run directory; empty: runs/<env>-seed<seed>."""
-    checkpoint_every: float = 120.0
-    """Seconds between checkpoints (taken at episode ends); 0: after every episode."""
-    log_every: float = 10.0
-    """Seconds between progress lines for training episodes (evaluations always print)."""
 
 
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
