@@ -110,6 +110,8 @@ class Config(RunConfig):
     """Fraction of the policy step's states drawn from the demonstrations (paper: 0)."""
     exploration_noise: float = 0.0
     """Std of Gaussian noise added to executed actions in training (paper: 0; HalfCheetah)."""
+    expert_state_negatives: float = 0.0
+    """Fraction of the critic's replay rows replaced by (s_E, pi(s_E, z), s'_E) (paper: 0)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
 
@@ -175,7 +177,7 @@ def critic_loss_and_grads(critic: nets.MLP, batch: Triplets, t: np.ndarray, n_ex
     return float(loss), grads, cache
 
 
-def expert_then_replay(expert_batch: Triplets, replay_batch: Triplets) -> Triplets:
+def concatenated(expert_batch: Triplets, replay_batch: Triplets) -> Triplets:
     fields = (f.name for f in dataclasses.fields(Triplets))
     return Triplets(
         *(np.concatenate([getattr(expert_batch, f), getattr(replay_batch, f)]) for f in fields)
@@ -194,7 +196,7 @@ def critic_step(
     """Alg. 1, lines 11-12: one RMSProp step on objective (18), then the target update
     nu' <- tau nu + (1 - tau) nu' (Appendix B). Ours+IRL passes its own `targets`."""
     n = len(expert_batch.states)
-    batch = expert_then_replay(expert_batch, replay_batch)  # (2n, ...)
+    batch = concatenated(expert_batch, replay_batch)  # (2n, ...)
     t, stats = targets(learner, batch, n, config, rng)
     loss, grads, cache = critic_loss_and_grads(learner.critic, batch, t[:, None], n)
     learner.critic_optimizer.step(learner.critic.params, grads, lr)
@@ -484,6 +486,12 @@ def update(
     policy_lr = nets.linear_decay(config.policy_lr, interactions, config.total_steps)
     expert_batch = expert_buffer.sample(rng, config.batch_size)
     replay_batch = replay.sample(rng, config.batch_size)
+    n_own = round(config.expert_state_negatives * config.batch_size)
+    if n_own:  # a deviation under test: the policy's own actions at demonstrated states
+        own = expert_buffer.sample(rng, n_own)  # rated as the learner's (halved target)
+        noise = rng.standard_normal((n_own, learner.policy.noise_dim), np.float32)
+        own.actions = learner.policy.act(own.states, noise)
+        replay_batch = concatenated(own, replay_batch.take(np.arange(n_own, config.batch_size)))
     stats = variant.critic_step(learner, expert_batch, replay_batch, config, critic_lr, rng)
     states = policy_states(expert_buffer, replay, config, rng)
     stats.update(policy_step(learner, states, config, policy_lr, rng))
@@ -670,6 +678,7 @@ def check_config(config: Config) -> None:
         | {name: (0, math.inf, "[)") for name in ("log_every", "exploration_noise")}
         | {name: (0, math.inf, "()") for name in ("policy_lr", "critic_lr", "rmsprop_eps")}
         | {name: (0, 1, "[]") for name in ("policy_expert_states", "policy_average")}
+        | {"expert_state_negatives": (0, 1, "[]")}
         | {"rmsprop_decay": (0, 1, "[)"), "tau": (0, 1, "(]"), "gamma": (0, 1, "[)")},
     )
     for name in ("policy_hidden", "critic_hidden"):

@@ -236,7 +236,7 @@ def irl_critic_step(learner: Learner, expert_batch, replay_batch, config, lr, rn
     update alternates the three processes of Sec. 1 (b) in order: reward, value, policy.
     """
     reward, n = learner.extra_state["reward"], len(expert_batch.states)
-    batch = offpac_il.expert_then_replay(expert_batch, replay_batch)
+    batch = offpac_il.concatenated(expert_batch, replay_batch)
     loss, grads, cache = reward_loss_and_grads(
         reward.net, batch.states, batch.actions, n, reward.objective
     )
