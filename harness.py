@@ -181,6 +181,25 @@ def check_numbers(config, ranges: dict[str, tuple[float, float, str]]) -> None:
                 raise UserError(f"{flag(f.name)} must lie in {kind[0]}{low:g}, {high:g}{kind[1]}")
 
 
+def check_choices(config, choices: dict[str, tuple[str, ...]]) -> None:
+    for name, allowed in choices.items():
+        if getattr(config, name) not in allowed:
+            raise UserError(f"{flag(name)} must be one of {', '.join(allowed)}")
+
+
+def check_finite(arrays: dict[str, np.ndarray], when: str) -> None:
+    """Stop a run whose numbers went non-finite, naming what and when; the last
+    checkpoint, taken before, holds the last finite ones."""
+    for name, values in arrays.items():
+        if not np.isfinite(values).all():
+            raise UserError(f"{name} became non-finite {when}; the last checkpoint is kept")
+
+
+def shown(value, spec: str) -> str:
+    """A measurement for a log line, or "-" where none exists yet."""
+    return "-" if value is None or value == "" else format(value, spec)
+
+
 class CommandLineParser(argparse.ArgumentParser):
     """argparse, but a bad flag ends in one line on stderr and exit status 2 (no usage
     dump), like every other error a user can cause."""

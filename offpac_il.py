@@ -121,9 +121,7 @@ PAPER_SETTINGS = {"policy_lr": 1e-4, "critic_lr": 1e-3, "policy_expert_states": 
 PAPER_SETTINGS |= {"policy_average": 0.0}
 
 
-# ----------------------------------------------------------------------------------------
-# The critic step: objective (18).
-# ----------------------------------------------------------------------------------------
+# === The critic step: objective (18) ===
 
 
 def critic_targets(
@@ -209,9 +207,7 @@ def critic_step(
     } | stats
 
 
-# ----------------------------------------------------------------------------------------
-# The policy step: gradient (6).
-# ----------------------------------------------------------------------------------------
+# === The policy step: gradient (6) ===
 
 
 def policy_gradient(learner: Learner, states: np.ndarray, noise: np.ndarray, total_rows: int):
@@ -282,10 +278,8 @@ def policy_step(
     return stats
 
 
-# ----------------------------------------------------------------------------------------
-# Buffers of (s, a, s') triplets in the networks' units. `terminal` marks a terminal s'
-# (not a time limit, which always bootstraps).
-# ----------------------------------------------------------------------------------------
+# === Buffers of (s, a, s') triplets in the networks' units ===
+# `terminal` marks a terminal s', not a time limit (which always bootstraps).
 
 
 @dataclass
@@ -338,9 +332,7 @@ class ReplayBuffer:
         self.size, self.next_index = (int(v) for v in arrays["replay/size_next"])
 
 
-# ----------------------------------------------------------------------------------------
-# The networks: pi_theta = tanh(PN([s, z])) and q_nu = sigmoid(QN([s, a])), target q_nu'.
-# ----------------------------------------------------------------------------------------
+# === The networks: pi = tanh(PN([s, z])), q_nu = sigmoid(QN([s, a])), target q_nu' ===
 
 
 @dataclass
@@ -439,9 +431,7 @@ class Learner:
             part.load_state(arrays, name)
 
 
-# ----------------------------------------------------------------------------------------
-# Where the paper's ablations hook in (lab/ablations.py).
-# ----------------------------------------------------------------------------------------
+# === Where the paper's ablations hook in (lab/ablations.py) ===
 
 
 @dataclass(frozen=True)
@@ -466,9 +456,7 @@ class Variant:
 OURS = Variant()
 
 
-# ----------------------------------------------------------------------------------------
-# One update (Alg. 1, lines 10-15), and the places where a variant changes it.
-# ----------------------------------------------------------------------------------------
+# === One update (Alg. 1, lines 10-15) ===
 
 
 def update(
@@ -501,9 +489,7 @@ def update(
     return stats
 
 
-# ----------------------------------------------------------------------------------------
-# Acting: the spaces, one episode (Alg. 1, lines 4-9) and evaluation.
-# ----------------------------------------------------------------------------------------
+# === Acting: the spaces, one episode (Alg. 1, lines 4-9) and evaluation ===
 
 
 @dataclass
@@ -643,9 +629,7 @@ def imitation_diagnostics(learner: Learner, expert_buffer: Triplets, rng) -> dic
     }
 
 
-# ----------------------------------------------------------------------------------------
-# The run: Algorithm 1's loop, with evaluation, progress.csv and checkpoints around it.
-# ----------------------------------------------------------------------------------------
+# === The run: Algorithm 1's loop, with evaluation, progress.csv and checkpoints ===
 
 PROGRESS_FIELDS = (
     *("interactions", "wall_seconds", "updates", "episodes", "eval_return_mean"),
@@ -666,9 +650,7 @@ def snapshot_path(run_dir: Path, interactions: int) -> Path:
 
 def check_config(config: Config) -> None:
     """Refuse settings that cannot work, with one clear line, before anything is written."""
-    for name, choices in (("termination", TERMINATIONS), ("sampling", ("sparse", "dense"))):
-        if getattr(config, name) not in choices:
-            raise UserError(f"{harness.flag(name)} must be one of {', '.join(choices)}")
+    harness.check_choices(config, {"termination": TERMINATIONS, "sampling": ("sparse", "dense")})
     at_least_one = ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples")
     at_least_one += ("target_samples", "eval_every", "eval_episodes")
     harness.check_numbers(
@@ -730,22 +712,6 @@ def restore(run_dir, variant: Variant = OURS):
     return config, spaces, expert_buffer, learner, replay, progress
 
 
-def show(value, spec: str) -> str:
-    """A measurement for the log, or "-" where none exists yet (before the first update)."""
-    return "-" if value is None or value == "" else format(value, spec)
-
-
-def check_finite(learner: Learner, replay: ReplayBuffer, interactions: int) -> None:
-    """Stop a run whose networks or observations went non-finite; the last checkpoint,
-    taken before, holds the last finite state."""
-    for name, values in {
-        **learner.state(),
-        "observations": replay.data.states[: replay.size],
-    }.items():
-        if not np.isfinite(values).all():
-            raise UserError(f"{name} became non-finite before {interactions} interactions")
-
-
 def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harness.Progress:
     """Algorithm 1, with evaluation, logging and checkpoints around it."""
     check_config(config)
@@ -769,7 +735,10 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
     while True:
         stats = progress.last_stats
         if progress.evaluation_due(config.eval_every, config.total_steps):
-            check_finite(learner, replay, progress.interactions)
+            observations = {"observations": replay.data.states[: replay.size]}
+            harness.check_finite(
+                learner.state() | observations, f"by {progress.interactions} interactions"
+            )
             returns, falls = evaluate(eval_env, learner, spaces, config, progress.eval_rounds)
             diagnostics_rng = np.random.default_rng([config.seed, 2, progress.eval_rounds])
             measured = {**stats, **imitation_diagnostics(learner, expert_buffer, diagnostics_rng)}
@@ -799,9 +768,9 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
             print(
                 f"eval  {progress.interactions:>8d} steps  return {returns.mean():8.1f}"
                 f" ± {returns.std():6.1f}  score {row['normalized_score']:6.3f}"
-                f"  q_E {show(stats.get('q_expert'), '.3f')}"
-                f"  q_B {show(stats.get('q_replay'), '.3f')}"
-                f"  sat {show(stats.get('saturation'), '.2f')}"
+                f"  q_E {harness.shown(stats.get('q_expert'), '.3f')}"
+                f"  q_B {harness.shown(stats.get('q_replay'), '.3f')}"
+                f"  sat {harness.shown(stats.get('saturation'), '.2f')}"
                 f"  |pi(s_E)-a_E|^2 {measured['expert_action_error']:.3f}"
                 + (f"  averaged PN {row['average_score']:6.3f}" if "average_score" in row else ""),
                 flush=True,
@@ -852,9 +821,7 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
     return progress
 
 
-# ----------------------------------------------------------------------------------------
-# Command line, generated from Config.
-# ----------------------------------------------------------------------------------------
+# === The command line, generated from Config ===
 
 # Settings a resumed run may change: the budget (the learning rates' schedule follows it)
 # and what only logging and checkpointing read.
