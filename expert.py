@@ -1,4 +1,4 @@
-"""Experts for the imitation tasks: ship them, evaluate them, and write demonstrations.
+"""Experts for the imitation tasks: the shipped experts and their demonstrations.
 
 The paper (Sasaki et al., ICLR 2019, Sec. 5.1) trains its experts with TRPO and never ships
 them. This project must run offline on a fresh machine, so it ships its own: linear
@@ -10,14 +10,12 @@ Files:
     experts/<env>.npz    a shipped expert: M, mu, std (ARS) or a policy network (SAC),
                          action bounds, and a JSON ``metadata`` record of the training
                          commands, seed, env steps and wall time
-    experts/table.json   Table 1 for the -v4 tasks (``python expert.py table``)
+    experts/table.json   Table 1 for the -v4 tasks (measured by ``python -m lab.table``)
     demos/*.npz          demonstrations: ``observations``, ``actions`` (env units),
                          ``next_observations``, ``terminals`` (is s' terminal), ``env_id``,
                          ``returns`` (per trajectory), ``seed``, ``sampling``, ``trajectories``
 
-Subcommands (``python expert.py -h``): ``demos``, ``check-demos``, ``import-minari``,
-``table``. Errors that a user can cause end in one line ``error: ...`` on stderr and exit
-status 2.
+Subcommands (``python expert.py -h``): ``demos``, ``check-demos``, ``import-minari``.
 """
 
 from __future__ import annotations
@@ -31,7 +29,6 @@ import os
 import sys
 import warnings
 import zipfile
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,9 +43,6 @@ REPO_DIR = Path(__file__).resolve().parent
 EXPERTS_DIR = REPO_DIR / "experts"
 DEMOS_DIR = REPO_DIR / "demos"
 TABLE_PATH = EXPERTS_DIR / "table.json"
-
-# The paper's five tasks, on the MuJoCo versions gymnasium still ships (-v1 is long gone).
-PAPER_TASKS = ("Hopper-v4", "HalfCheetah-v4", "Walker2d-v4", "Ant-v4", "Humanoid-v4")
 
 # Sec. 5.1: expert trajectories are 1000 steps long; sparse sampling keeps 100 of each.
 TRAJECTORY_STEPS = 1000
@@ -153,13 +147,13 @@ class ExpertPolicy:
     """
 
     env_id: str
-    weights: np.ndarray | None  # M, (dim A, dim S)
-    obs_mean: np.ndarray | None  # mu, (dim S,)
-    obs_std: np.ndarray | None  # sqrt(diag Sigma), (dim S,)
     action_low: np.ndarray  # (dim A,)
     action_high: np.ndarray  # (dim A,)
-    metadata: dict = dataclasses.field(default_factory=dict)
+    weights: np.ndarray | None = None  # M, (dim A, dim S)
+    obs_mean: np.ndarray | None = None  # mu, (dim S,)
+    obs_std: np.ndarray | None = None  # sqrt(diag Sigma), (dim S,)
     network: nets.MLP | None = None  # SAC: state -> (mean, log std), (dim S) -> (2 dim A)
+    metadata: dict = dataclasses.field(default_factory=dict)
 
     @property
     def kind(self) -> str:
@@ -183,24 +177,15 @@ class ExpertPolicy:
         shipped experts, which has no ``kind``); a SAC file holds ``kind`` = "sac-mlp",
         the layer ``sizes`` and the network's ``policy/W0``, ``policy/b0``, ... .
         """
-        record = {**self.metadata, **metadata}
         if self.network is None:
             arrays = dict(weights=self.weights, obs_mean=self.obs_mean, obs_std=self.obs_std)
         else:
-            arrays = dict(
-                kind=np.array(SAC_MLP),
-                sizes=np.array(self.network.sizes),
-                **self.network.state("policy"),
-            )
+            arrays = dict(kind=np.array(SAC_MLP), sizes=np.array(self.network.sizes))
+            arrays |= self.network.state("policy")
+        arrays |= dict(action_low=self.action_low, action_high=self.action_high)
+        record = json.dumps({**self.metadata, **metadata}, sort_keys=True)
         harness.save_arrays(
-            path,
-            dict(
-                env_id=np.array(self.env_id),
-                **arrays,
-                action_low=self.action_low,
-                action_high=self.action_high,
-                metadata=np.array(json.dumps(record, sort_keys=True)),
-            ),
+            path, {"env_id": np.array(self.env_id), **arrays, "metadata": np.array(record)}
         )
 
 
@@ -223,35 +208,19 @@ def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
     try:
         with np.load(path, allow_pickle=False) as file:
             kind = str(file["kind"]) if "kind" in file.files else ARS_LINEAR
-            common = dict(
-                env_id=str(file["env_id"]),
-                action_low=np.asarray(file["action_low"], dtype=np.float64),
-                action_high=np.asarray(file["action_high"], dtype=np.float64),
-                metadata=json.loads(str(file["metadata"])),
-            )
+            if kind not in EXPERT_KINDS:
+                raise ValueError(f"unknown expert kind {kind!r}; expected one of {EXPERT_KINDS}")
+            low, high = (np.asarray(file[k], np.float64) for k in ("action_low", "action_high"))
+            policy = ExpertPolicy(str(file["env_id"]), low, high)
+            policy.metadata = json.loads(str(file["metadata"]))
             if kind == ARS_LINEAR:
-                policy = ExpertPolicy(
-                    weights=np.asarray(file["weights"], dtype=np.float64),
-                    obs_mean=np.asarray(file["obs_mean"], dtype=np.float64),
-                    obs_std=np.asarray(file["obs_std"], dtype=np.float64),
-                    **common,
-                )
-            elif kind == SAC_MLP:
-                sizes = [int(size) for size in file["sizes"]]
-                params = {
-                    key.removeprefix("policy/"): file[key]
-                    for key in file.files
-                    if key.startswith("policy/")
-                }
-                policy = ExpertPolicy(
-                    weights=None,
-                    obs_mean=None,
-                    obs_std=None,
-                    network=nets.MLP(sizes, "identity", params),
-                    **common,
+                policy.weights, policy.obs_mean, policy.obs_std = (
+                    np.asarray(file[k], np.float64) for k in ("weights", "obs_mean", "obs_std")
                 )
             else:
-                raise ValueError(f"unknown expert kind {kind!r}; expected one of {EXPERT_KINDS}")
+                names = [key for key in file.files if key.startswith("policy/")]
+                params = {key.removeprefix("policy/"): file[key] for key in names}
+                policy.network = nets.MLP([int(n) for n in file["sizes"]], "identity", params)
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
         raise UserError(f"{path}: not a valid expert file ({error})") from None
     if policy.env_id != env_id:
@@ -270,45 +239,6 @@ def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
     if not consistent or policy.action_low.shape != (dim_a,):
         raise UserError(f"{path}: inconsistent array shapes in expert file")
     return policy
-
-
-# ---------------------------------------------------------------------------------------------
-# Evaluation with the true environment reward
-# ---------------------------------------------------------------------------------------------
-
-
-def run_episode(env: gym.Env, policy_fn: Callable, seed: int) -> tuple[float, int]:
-    """One episode from ``env.reset(seed=seed)``; returns (true return, steps)."""
-    observation, _ = env.reset(seed=seed)
-    episode_return, steps, done = 0.0, 0, False
-    while not done:
-        observation, reward, terminated, truncated, _ = env.step(policy_fn(observation))
-        episode_return += float(reward)
-        steps += 1
-        done = terminated or truncated
-    return episode_return, steps
-
-
-def evaluate(env_id: str, policy_fn: Callable, episodes: int, seed: int) -> np.ndarray:
-    """Returns of ``episodes`` seeded episodes (``env.reset(seed=seed + i)``), true reward."""
-    env = make_env(env_id)
-    try:
-        return np.array([run_episode(env, policy_fn, seed + i)[0] for i in range(episodes)])
-    finally:
-        env.close()
-
-
-def random_policy_returns(env_id: str, episodes: int, seed: int) -> np.ndarray:
-    """Returns of uniform random actions; the action space is seeded like the resets."""
-    env = make_env(env_id)
-    try:
-        returns = []
-        for i in range(episodes):
-            env.action_space.seed(seed + i)
-            returns.append(run_episode(env, lambda _: env.action_space.sample(), seed + i)[0])
-        return np.array(returns)
-    finally:
-        env.close()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -362,8 +292,7 @@ def make_demos(
     reset seeds and one for subsampling, so that sparse and dense demonstrations with the same
     seed come from the same trajectories (sparse is a subset of dense).
     """
-    if sampling not in SAMPLING_MODES:
-        raise UserError(f"--sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}")
+    check_sampling(sampling)
     if trajectories < 1:
         raise UserError(f"--trajectories must be at least 1, got {trajectories}")
     make_env(env_id).close()  # a wrong environment is reported as such, not as "no expert"
@@ -372,17 +301,12 @@ def make_demos(
     expert = expert if expert is not None else load_expert(env_id)
     max_attempts = max_attempts if max_attempts is not None else 10 * trajectories
     episode_rng, subsample_rng = np.random.default_rng(seed).spawn(2)
-    env = make_env(env_id)
-    observations, actions, next_observations, returns = [], [], [], []
-    used_seeds, dropped_seeds = [], []
-    try:
+    chunks, returns, used_seeds, dropped_seeds = [], [], [], []
+    with make_env(env_id) as env:
         while len(returns) < trajectories:
             if len(used_seeds) + len(dropped_seeds) >= max_attempts:
-                floor = (
-                    f" with a return of at least {min_return:.0f}"
-                    if math.isfinite(min_return)
-                    else ""
-                )
+                at_least = f" with a return of at least {min_return:.0f}"
+                floor = at_least if math.isfinite(min_return) else ""
                 raise UserError(
                     f"the {env_id} expert lasted {TRAJECTORY_STEPS} steps{floor} in only "
                     f"{len(returns)} of {max_attempts} episodes; it is not good enough for demos"
@@ -403,37 +327,53 @@ def make_demos(
                 dropped_seeds.append(episode_seed)
                 continue
             states = np.asarray(states)  # (1001, dim S): s_0 .. s_1000
-            if sampling == "sparse":
-                keep = np.sort(
-                    subsample_rng.choice(
-                        TRAJECTORY_STEPS, SPARSE_TRIPLETS_PER_TRAJECTORY, replace=False
-                    )
-                )
-            else:
-                keep = np.arange(TRAJECTORY_STEPS)
-            observations.append(states[:-1][keep])
-            actions.append(np.asarray(episode_actions)[keep])
-            next_observations.append(states[1:][keep])
+            keep = kept_steps(TRAJECTORY_STEPS, sampling, subsample_rng)
+            actions = np.asarray(episode_actions)
+            # Every kept trajectory ran into the time limit: truncation, not termination.
+            terminals = np.zeros(TRAJECTORY_STEPS, bool)
+            chunks.append(tuple(a[keep] for a in (states[:-1], actions, states[1:], terminals)))
             returns.append(episode_return)
             used_seeds.append(episode_seed)
-    finally:
-        env.close()
-    count = sum(len(chunk) for chunk in observations)
-    return dict(
-        observations=np.concatenate(observations).astype(np.float32),
-        actions=np.concatenate(actions).astype(np.float32),
-        next_observations=np.concatenate(next_observations).astype(np.float32),
-        # Every kept trajectory ran into the time limit, which is truncation, not termination.
-        terminals=np.zeros(count, dtype=bool),
-        env_id=np.array(env_id),
-        returns=np.array(returns),
-        seed=np.array(seed),
-        sampling=np.array(sampling),
-        trajectories=np.array(trajectories),
+    return demo_arrays(
+        chunks,
+        env_id,
+        returns,
+        seed,
+        sampling,
         episode_seeds=np.array(used_seeds, dtype=np.int64),
         dropped_episode_seeds=np.array(dropped_seeds, dtype=np.int64),
         min_return=np.array(min_return),
         expert=np.array(json.dumps(expert.metadata.get("commands", []))),
+    )
+
+
+def check_sampling(sampling: str) -> None:
+    if sampling not in SAMPLING_MODES:
+        raise UserError(f"--sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}")
+
+
+def kept_steps(steps: int, sampling: str, rng: np.random.Generator) -> np.ndarray:
+    """The steps of a trajectory whose triplets are kept: sparse, 100 drawn uniformly
+    without replacement (all of a shorter trajectory); dense, all of them."""
+    if sampling == "sparse" and steps > SPARSE_TRIPLETS_PER_TRAJECTORY:
+        return np.sort(rng.choice(steps, SPARSE_TRIPLETS_PER_TRAJECTORY, replace=False))
+    return np.arange(steps)
+
+
+def demo_arrays(chunks: list[tuple], env_id: str, returns, seed, sampling, **extra) -> dict:
+    """A demonstration file's arrays from (s, a, s', terminal) chunks, one per trajectory."""
+    states, actions, next_states, terminals = map(np.concatenate, zip(*chunks, strict=True))
+    return dict(
+        observations=states.astype(np.float32),
+        actions=actions.astype(np.float32),
+        next_observations=next_states.astype(np.float32),
+        terminals=terminals.astype(bool),
+        env_id=np.array(env_id),
+        returns=np.array(returns),
+        seed=np.array(seed),
+        sampling=np.array(sampling),
+        trajectories=np.array(len(returns)),
+        **extra,
     )
 
 
@@ -479,6 +419,16 @@ def ensure_demos(
     return path
 
 
+def demo_path(settings, make: bool = True) -> Path:
+    """The demonstrations a run's settings name (offpac_il.RunConfig's demos, env,
+    trajectories, sampling, demo_seed): the file `demos`, else the shipped expert's default
+    demonstrations, made the first time unless `make` is False."""
+    if settings.demos:
+        return Path(settings.demos)
+    default = (settings.env, settings.trajectories, settings.sampling, settings.demo_seed)
+    return ensure_demos(*default) if make else default_demos_path(*default)
+
+
 def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
     """Check triplets against ``env_id``; any problem is one UserError naming the file."""
 
@@ -492,16 +442,14 @@ def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
     if recorded_env is not None and recorded_env != env_id:
         raise fail(f"demonstrations are for {recorded_env}, not {env_id}")
     try:
-        observations = np.asarray(arrays["observations"], dtype=np.float32)
-        actions = np.asarray(arrays["actions"], dtype=np.float32)
-        next_observations = np.asarray(arrays["next_observations"], dtype=np.float32)
+        observations, actions, next_observations = (
+            np.asarray(arrays[key], dtype=np.float32) for key in DEMO_ARRAY_KEYS[:3]
+        )
         terminals = np.asarray(arrays["terminals"]).astype(bool)
     except (TypeError, ValueError) as error:
         raise fail(f"arrays are not numeric ({error})") from None
-    env = make_env(env_id)
-    dim_s, dim_a = env_dimensions(env)
-    low, high = env.action_space.low, env.action_space.high
-    env.close()
+    with make_env(env_id) as env:
+        (dim_s, dim_a), low, high = env_dimensions(env), env.action_space.low, env.action_space.high
     if len(observations) == 0:
         raise fail("contains zero triplets")
     for name, array, dim in (
@@ -517,8 +465,7 @@ def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
     if len(lengths) != 1 or terminals.ndim != 1:
         raise fail(
             f"mismatched lengths: {len(observations)} observations, {len(actions)} "
-            f"actions, {len(next_observations)} next_observations, "
-            f"{len(terminals)} terminals"
+            f"actions, {len(next_observations)} next_observations, {len(terminals)} terminals"
         )
     tolerance = ACTION_BOUND_TOLERANCE * np.maximum(1.0, np.abs(np.stack([low, high])))
     if np.any(actions < low - tolerance[0]) or np.any(actions > high + tolerance[1]):
@@ -527,21 +474,10 @@ def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
             f"{env_id} (largest |a| = {np.abs(actions).max():g})"
         )
 
-    def optional(key, convert):
-        return convert(arrays[key]) if key in arrays else None
-
-    return Demos(
-        observations=observations,
-        actions=actions,
-        next_observations=next_observations,
-        terminals=terminals,
-        env_id=recorded_env,
-        returns=optional("returns", np.asarray),
-        seed=optional("seed", int),
-        sampling=optional("sampling", str),
-        trajectories=optional("trajectories", int),
-        path=path,
-    )
+    recorded = (("returns", np.asarray), ("seed", int), ("sampling", str), ("trajectories", int))
+    optional = {key: convert(arrays[key]) for key, convert in recorded if key in arrays}
+    triplets = (observations, actions, next_observations, terminals)
+    return Demos(*triplets, env_id=recorded_env, path=path, **optional)
 
 
 def load_demos(path: Path, env_id: str) -> Demos:
@@ -577,8 +513,7 @@ def import_minari(
         raise UserError(
             "import-minari needs the minari package: pip install 'minari[hdf5]'"
         ) from None
-    if sampling not in SAMPLING_MODES:
-        raise UserError(f"--sampling must be one of {', '.join(SAMPLING_MODES)}, got {sampling!r}")
+    check_sampling(sampling)
     try:
         dataset = minari.load_dataset(dataset_id, download=False)
     except Exception as error:  # minari raises bare Exceptions/FileNotFoundError/ValueError
@@ -588,111 +523,28 @@ def import_minari(
             f"{error}"
         ) from None
     rng = np.random.default_rng(seed)
-    observations, actions, next_observations, terminals, returns = [], [], [], [], []
+    chunks, returns = [], []
     for episode in dataset.iterate_episodes():
         if trajectories is not None and len(returns) >= trajectories:
             break
-        episode_observations = np.asarray(episode.observations)
-        if episode_observations.dtype == object or episode_observations.ndim != 2:
+        observations = np.asarray(episode.observations)  # (T + 1, dim S)
+        if observations.dtype == object or observations.ndim != 2:
             raise UserError(f"{dataset_id}: observations are not flat arrays")
-        steps = len(episode.actions)
-        keep = np.arange(steps)
-        if sampling == "sparse" and steps > SPARSE_TRIPLETS_PER_TRAJECTORY:
-            keep = np.sort(rng.choice(steps, SPARSE_TRIPLETS_PER_TRAJECTORY, replace=False))
-        observations.append(episode_observations[:-1][keep])
-        actions.append(np.asarray(episode.actions)[keep])
-        next_observations.append(episode_observations[1:][keep])
-        terminals.append(np.asarray(episode.terminations, dtype=bool)[keep])
+        keep = kept_steps(len(episode.actions), sampling, rng)
+        triplet = (observations[:-1], np.asarray(episode.actions), observations[1:])
+        terminals = np.asarray(episode.terminations, dtype=bool)
+        chunks.append(tuple(a[keep] for a in (*triplet, terminals)))
         returns.append(float(np.sum(episode.rewards)))
     if not returns:
         raise UserError(f"Minari dataset {dataset_id!r} has no episodes")
-
-    def stack(chunks, dtype):
-        return np.concatenate(chunks).astype(dtype)
-
-    return dict(
-        observations=stack(observations, np.float32),
-        actions=stack(actions, np.float32),
-        next_observations=stack(next_observations, np.float32),
-        terminals=stack(terminals, bool),
-        env_id=np.array(env_id),
-        returns=np.array(returns),
-        seed=np.array(seed),
-        sampling=np.array(sampling),
-        trajectories=np.array(len(returns)),
-        source=np.array(f"minari:{dataset_id}"),
+    return demo_arrays(
+        chunks, env_id, returns, seed, sampling, source=np.array(f"minari:{dataset_id}")
     )
 
 
 # ---------------------------------------------------------------------------------------------
-# Reference returns (Table 1): random policy and expert, the normalised score's two ends
+# Reference returns (Table 1, measured by lab/table.py): the normalised score's two ends
 # ---------------------------------------------------------------------------------------------
-
-
-def numeric_platform() -> dict:
-    """What decides the last bits of a return: library versions and the BLAS kernel in use.
-
-    The returns of the SAC experts (float32 networks) on Ant-v4 change with the kernel that
-    OpenBLAS picks for the CPU (for example 4932 with SkylakeX, 4454 with Haswell over
-    the same 10 seeded episodes) because an episode ends when rounding tips the robot out of
-    its healthy range; OPENBLAS_CORETYPE chooses the kernel.
-    """
-    import mujoco
-    from threadpoolctl import threadpool_info
-
-    blas = [pool for pool in threadpool_info() if pool["user_api"] == "blas"]
-    return dict(
-        numpy=np.__version__,
-        mujoco=mujoco.__version__,
-        gymnasium=gym.__version__,
-        blas_kernel=blas[0].get("architecture", "unknown") if blas else "none",
-    )
-
-
-def measure_table(
-    episodes: int = 10, seed: int = 0, tasks=PAPER_TASKS, log: Callable[[str], None] = print
-) -> dict:
-    """dim S, dim A, random and expert returns (mean, std over seeded episodes) per task."""
-    table = {}
-    for env_id in tasks:
-        env = make_env(env_id)
-        dim_s, dim_a = env_dimensions(env)
-        env.close()
-        random_returns = random_policy_returns(env_id, episodes, seed)
-        row = dict(
-            dim_s=dim_s,
-            dim_a=dim_a,
-            episodes=episodes,
-            seed=seed,
-            random_mean=float(random_returns.mean()),
-            random_std=float(random_returns.std()),
-            expert_mean=None,
-            expert_std=None,
-            measured_with=numeric_platform(),
-        )
-        if default_expert_path(env_id).exists():
-            expert_returns = evaluate(env_id, load_expert(env_id).act, episodes, seed)
-            row.update(
-                expert_mean=float(expert_returns.mean()), expert_std=float(expert_returns.std())
-            )
-        log(f"{env_id}: random {row['random_mean']:.2f}, expert {row['expert_mean']}")
-        table[env_id] = row
-    return table
-
-
-def table_markdown(table: dict) -> str:
-    lines = ["| Task | dim S | dim A | Random policy | Expert |", "|---|---:|---:|---:|---:|"]
-    for env_id, row in table.items():
-        expert = (
-            f"{row['expert_mean']:.2f} ± {row['expert_std']:.2f}"
-            if row["expert_mean"] is not None
-            else "missing (not trained yet)"
-        )
-        lines.append(
-            f"| {env_id} | {row['dim_s']} | {row['dim_a']} | "
-            f"{row['random_mean']:.2f} ± {row['random_std']:.2f} | {expert} |"
-        )
-    return "\n".join(lines)
 
 
 def reference_returns(env_id: str, table_path: Path = TABLE_PATH) -> tuple[float, float]:
@@ -700,14 +552,14 @@ def reference_returns(env_id: str, table_path: Path = TABLE_PATH) -> tuple[float
     try:
         table = json.loads(Path(table_path).read_text())
     except FileNotFoundError:
-        raise UserError(f"{table_path} is missing; run `python expert.py table`") from None
+        raise UserError(f"{table_path} is missing; run `python -m lab.table`") from None
     except (OSError, ValueError) as error:
         raise UserError(f"{table_path}: not a valid table ({error})") from None
     row = table.get(env_id)
     if row is None or row.get("expert_mean") is None:
         raise UserError(
             f"{table_path} has no expert return for {env_id}; "
-            f"run `python expert.py table` once its expert exists"
+            f"run `python -m lab.table` once its expert exists"
         )
     return float(row["random_mean"]), float(row["expert_mean"])
 
@@ -728,15 +580,9 @@ def normalized_score(value: float, references: tuple[float, float]) -> float:
     return (value - random_return) / (expert_return - random_return)
 
 
-def positive_int(text: str) -> int:
-    """A count such as ``8`` or a budget such as ``7e6``."""
-    value = float(text)
-    if not math.isfinite(value) or value != int(value):
-        raise argparse.ArgumentTypeError(f"must be a whole number, got {text}")
-    value = int(value)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
+# ---------------------------------------------------------------------------------------------
+# Command line: python expert.py {demos,import-minari,check-demos}
+# ---------------------------------------------------------------------------------------------
 
 
 def cli_demos(args) -> None:
@@ -773,75 +619,45 @@ def cli_check_demos(args) -> None:
     )
 
 
-def cli_table(args) -> None:
-    table = measure_table(args.episodes, args.seed, log=lambda line: print(line, flush=True))
-    harness.write_text(Path(args.out), json.dumps(table, indent=2) + "\n")
-    print(f"wrote {args.out}\n")
-    print(table_markdown(table))
-
-
-def build_parser() -> argparse.ArgumentParser:
+def parse(argv: list[str]) -> argparse.Namespace:
     parser = harness.CommandLineParser(prog="expert.py", description=__doc__.splitlines()[0])
     commands = parser.add_subparsers(dest="command", required=True)
+    count = harness.positive_int
 
-    demos_parser = commands.add_parser("demos", help="write expert (s, a, s') demonstrations")
-    demos_parser.add_argument("--env", required=True)
-    demos_parser.add_argument("--trajectories", type=positive_int, default=4)
-    demos_parser.add_argument(
+    demos = commands.add_parser("demos", help="write expert (s, a, s') demonstrations")
+    demos.add_argument("--env", required=True)
+    demos.add_argument("--trajectories", type=count, default=4)
+    demos.add_argument(
         "--sampling",
         choices=SAMPLING_MODES,
         default="sparse",
         help="sparse: 100 random triplets per trajectory; dense: all 1000",
     )
-    demos_parser.add_argument("--seed", type=int, default=0)
-    demos_parser.add_argument("--expert", help="expert file (default: experts/<env>.npz)")
-    demos_parser.add_argument(
-        "--out", help="default: demos/<env>-<sampling>-<n>traj-seed<seed>.npz"
-    )
-    demos_parser.set_defaults(handler=cli_demos)
+    demos.add_argument("--seed", type=int, default=0)
+    demos.add_argument("--expert", help="expert file (default: experts/<env>.npz)")
+    demos.add_argument("--out", help="default: demos/<env>-<sampling>-<n>traj-seed<seed>.npz")
+    demos.set_defaults(handler=cli_demos)
 
-    minari_parser = commands.add_parser(
+    minari = commands.add_parser(
         "import-minari", help="convert a locally stored Minari dataset to a demonstration file"
     )
-    minari_parser.add_argument("dataset_id", help="e.g. mujoco/hopper/expert-v0")
-    minari_parser.add_argument("--env", required=True, help="environment the triplets are for")
-    minari_parser.add_argument("--out", required=True)
-    minari_parser.add_argument(
-        "--trajectories",
-        type=positive_int,
-        default=None,
-        help="use the first N episodes (default: all)",
-    )
-    minari_parser.add_argument("--sampling", choices=SAMPLING_MODES, default="dense")
-    minari_parser.add_argument("--seed", type=int, default=0)
-    minari_parser.set_defaults(handler=cli_import_minari)
+    minari.add_argument("dataset_id", help="e.g. mujoco/hopper/expert-v0")
+    minari.add_argument("--env", required=True, help="environment the triplets are for")
+    minari.add_argument("--out", required=True)
+    minari.add_argument("--trajectories", type=count, help="the first N episodes (default: all)")
+    minari.add_argument("--sampling", choices=SAMPLING_MODES, default="dense")
+    minari.add_argument("--seed", type=int, default=0)
+    minari.set_defaults(handler=cli_import_minari)
 
-    check_parser = commands.add_parser("check-demos", help="validate a demonstration file")
-    check_parser.add_argument("file")
-    check_parser.add_argument("--env", required=True)
-    check_parser.set_defaults(handler=cli_check_demos)
-
-    table_parser = commands.add_parser("table", help="measure Table 1 for the -v4 tasks")
-    table_parser.add_argument("--episodes", type=positive_int, default=10)
-    table_parser.add_argument(
-        "--seed", type=int, default=0, help="episode i is reset with seed + i"
-    )
-    table_parser.add_argument("--out", default=str(TABLE_PATH))
-    table_parser.set_defaults(handler=cli_table)
-    return parser
+    check = commands.add_parser("check-demos", help="validate a demonstration file")
+    check.add_argument("file")
+    check.add_argument("--env", required=True)
+    check.set_defaults(handler=cli_check_demos)
+    return parser.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        args.handler(args)
-    except UserError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-    return 0
+    return harness.cli_main(argv, parse, lambda args, _: args.handler(args), checkpoints=False)
 
 
 if __name__ == "__main__":

@@ -674,12 +674,7 @@ TERMINATIONS = ("bootstrap", "absorbing", "zero")
 def prepare(config: Config, env, rng: np.random.Generator, variant: Variant = OURS):
     """The demonstrations (B_pi_E), the spaces, a fresh learner and an empty B_beta.
     The networks are drawn from `rng` in a fixed order: PN, QN, then a variant's extras."""
-    if config.demos:
-        demo_path = Path(config.demos)
-    else:
-        demo_path = expert.ensure_demos(
-            config.env, config.trajectories, config.sampling, config.demo_seed
-        )
+    demo_path = expert.demo_path(config)
     demos = expert.load_demos(demo_path, config.env)
     spaces = make_spaces(env, demos, config)
     expert_buffer = expert_buffer_from(demos, spaces)

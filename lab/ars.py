@@ -37,7 +37,6 @@ import json
 import math
 import multiprocessing
 import os
-import shlex
 import signal
 import sys
 from collections.abc import Callable
@@ -48,18 +47,12 @@ import gymnasium as gym
 import numpy as np
 
 import harness
-from expert import (
-    EXPERTS_DIR,
-    ExpertPolicy,
-    default_expert_path,
-    env_dimensions,
-    load_expert,
-    make_env,
-    positive_int,
-)
-from harness import UserError
+from expert import EXPERTS_DIR, ExpertPolicy, default_expert_path, env_dimensions, make_env
+from harness import UserError, positive_int
+from lab import shipping
 
 CHECKPOINTS_DIR = EXPERTS_DIR / "checkpoints"
+TRAINER = "ARS V2-t (Mania, Guy & Recht 2018, Algorithm 2)"  # in the expert file's record
 
 
 # ---------------------------------------------------------------------------------------------
@@ -387,7 +380,7 @@ def evaluate_linear(state: ARSState, runner: RolloutRunner) -> np.ndarray:
 
     The seeds come from their own Generator, derived from (seed, iteration), so that how
     often one evaluates does not change the training run, and the shipped policy is not
-    chosen on the fixed seeds that ``table`` reports.
+    chosen on the fixed seeds that lab/table.py reports.
     """
     obs_mean, obs_std = state.statistics.mean.copy(), state.statistics.std()
     eval_rng = np.random.default_rng([state.seed, state.iteration])
@@ -406,7 +399,7 @@ def train(
     resume: bool = False,
     command: str = "",
     checkpoint_seconds: float = 10.0,
-    log: Callable[[str], None] = print,
+    log: Callable[[str], None] = shipping.say,
 ) -> ARSState:
     """Run ARS V2-t until ``config.steps`` environment steps; keep the best evaluated policy.
 
@@ -448,40 +441,8 @@ def train(
         f"{json.dumps(dataclasses.asdict(state.config))}"
     )
 
-    def write_expert() -> None:
-        policy = ExpertPolicy(
-            env_id,
-            state.best_weights,
-            state.best_obs_mean,
-            state.best_obs_std,
-            action_low,
-            action_high,
-        )
-        policy.save(
-            expert_path,
-            trainer="ARS V2-t (Mania, Guy & Recht 2018, Algorithm 2)",
-            commands=list(state.commands),
-            seed=state.seed,
-            hyperparameters=dataclasses.asdict(state.config),
-            env_steps=state.best_env_steps,
-            wall_seconds=round(state.wall_seconds, 1),
-            eval_return_mean=state.best_return,
-            eval_return_std=state.best_return_std,
-            eval_episodes=state.config.eval_episodes,
-        )
-
-    # A fresh run must not replace a shipped expert with a worse one: it writes only when it
-    # beats the evaluation recorded in the existing file (a resumed run carries its own best).
-    if not resume and expert_path.exists():
-        try:
-            existing = load_expert(env_id, expert_path)
-            state.best_return = float(existing.metadata.get("eval_return_mean", -np.inf))
-            log(
-                f"{expert_path} exists (eval return {state.best_return:.1f}); "
-                f"it is replaced only by a better evaluation"
-            )
-        except UserError:
-            pass
+    if not resume:  # a resumed run carries its own best
+        state.best_return = shipping.bar_to_beat(env_id, expert_path, log)
     clock = harness.Clock(state, checkpoint_seconds, log_every=math.inf)  # wall time, pacing
     with RolloutRunner(env_id, workers) as runner:
         while state.env_steps < state.config.steps:
@@ -497,7 +458,11 @@ def train(
                     state.best_obs_mean = state.statistics.mean.copy()
                     state.best_obs_std = state.statistics.std()
                     state.best_env_steps = state.env_steps
-                    write_expert()
+                    best = (state.best_weights, state.best_obs_mean, state.best_obs_std)
+                    policy = ExpertPolicy(env_id, action_low, action_high, *best)
+                    shipping.ship(
+                        policy, expert_path, returns, TRAINER, state, state.seed, state.config
+                    )
                 log(
                     f"iteration {state.iteration:5d}  env steps {state.env_steps:10d}  "
                     f"wall {state.wall_seconds:8.1f} s  eval return {returns.mean():9.1f} "
@@ -571,40 +536,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run_from_args(args: argparse.Namespace, argv: list[str]) -> ARSState:
-    overrides = {field.name: getattr(args, field.name) for field in dataclasses.fields(ARSConfig)}
-    checkpoint = (
-        Path(args.checkpoint) if args.checkpoint else CHECKPOINTS_DIR / f"{args.env}.ckpt.npz"
-    )
-    config = ars_config_for(args.env, **overrides)
-    if args.resume:
-        given = [harness.flag(k) for k, v in overrides.items() if v is not None and k != "steps"]
-        if given:
-            raise UserError(
-                f"--resume continues the checkpoint's settings; only --steps may "
-                f"change (got {', '.join(given)})"
-            )
-        if args.steps is None and checkpoint.exists():  # the budget the run had
-            config = dataclasses.replace(config, steps=ARSState.load(checkpoint).config.steps)
+    fields = dataclasses.fields(ARSConfig)
+    given = {f.name: getattr(args, f.name) for f in fields if getattr(args, f.name) is not None}
+    checkpoint = Path(args.checkpoint or CHECKPOINTS_DIR / f"{args.env}.ckpt.npz")
+    if args.resume and checkpoint.exists():  # the run's own settings; only the budget may change
+        saved = dataclasses.asdict(ARSState.load(checkpoint).config)
+        config = ARSConfig(**harness.resumed_settings(saved, given, ("steps",)))
+    else:
+        config = ars_config_for(args.env, **given)
     return train(
         args.env,
         args.seed,
         config,
         args.workers,
         checkpoint,
-        Path(args.out) if args.out else default_expert_path(args.env),
+        Path(args.out or default_expert_path(args.env)),
         resume=args.resume,
-        command=shlex.join(["python", "-m", "lab.ars", *argv]),
-        log=lambda line: print(line, flush=True),
+        command=shipping.command_line("lab.ars", argv),
     )
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    try:
-        args = build_parser().parse_args(argv)
-    except SystemExit as exit:  # --help, or a bad flag (its one line already printed)
-        return exit.code
-    return harness.run_cli(lambda: run_from_args(args, argv))
+    return harness.cli_main(argv, lambda argv: build_parser().parse_args(argv), run_from_args)
 
 
 if __name__ == "__main__":

@@ -59,7 +59,7 @@ import harness
 import nets
 import offpac_il
 from harness import UserError
-from lab import ablations
+from lab import ablations, optim
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -70,33 +70,12 @@ LOG_2PI = float(np.log(2.0 * np.pi))
 
 
 @dataclass
-class RunSettings:
-    """Settings every baseline shares: task, demonstrations, evaluation, run directory."""
+class RunSettings(offpac_il.RunConfig):
+    """Settings every baseline shares: the learner's (task, demonstrations, evaluation, run
+    directory), and the Gaussian policy's size."""
 
-    env: str = "Hopper-v4"
-    """Gymnasium environment id (Box observations, bounded Box actions)."""
-    seed: int = 0
-    """Seed of the run's single numpy Generator and of the environment."""
-    demos: str = ""
-    """Demonstration file (.npz); empty: the shipped expert's default demonstrations."""
-    trajectories: int = 4
-    """Expert trajectories in the default demonstrations (Sec. 5.1)."""
-    sampling: str = "sparse"
-    """Default demonstrations: sparse (100 random triplets per trajectory) or dense."""
-    demo_seed: int = 0
-    """Seed of the default demonstrations."""
-    standardize: bool = True
-    """Standardise states by the demonstrations' mean and std (+1e-3), as the learner does."""
     policy_hidden: tuple[int, ...] = (100, 100)
     """Hidden layer sizes of the Gaussian policy's mean network."""
-    eval_episodes: int = 5
-    """Episodes per evaluation (stochastic policy, true reward)."""
-    run_dir: str = ""
-    """Run directory; empty: runs/<method>-<env>-seed<seed>."""
-    checkpoint_every: float = 120.0
-    """Seconds between checkpoints (taken between updates); 0: after every iteration."""
-    log_every: float = 10.0
-    """Seconds between training progress lines (evaluations always print)."""
 
 
 @dataclass
@@ -173,43 +152,22 @@ class GAILConfig(RunSettings):
     """Policy pairs and expert pairs (each) per discriminator step."""
 
 
-SAMPLINGS = expert.SAMPLING_MODES
-
-
 def check_config(config: RunSettings) -> None:
-    """Refuse settings that cannot work, with one clear message."""
-    if config.sampling not in SAMPLINGS:
-        raise UserError(f"--sampling must be one of {', '.join(SAMPLINGS)}")
-    counts = ["trajectories", "total_steps", "eval_every", "eval_episodes"]
-    counts += [
-        name
-        for name in (
-            "batch_size",
-            "patience",
-            "rollout_steps",
-            "ppo_epochs",
-            "minibatch_size",
-            "discriminator_steps",
-            "discriminator_batch",
-        )
-        if hasattr(config, name)
-    ]
-    for name in counts:
-        if getattr(config, name) < 1:
-            raise UserError(f"--{name.replace('_', '-')} must be at least 1")
-    if any(size < 1 for size in config.policy_hidden):
-        raise UserError("--policy-hidden sizes must be at least 1")
-    if isinstance(config, BCConfig) and not 0.0 < config.validation_fraction < 1.0:
-        raise UserError("--validation-fraction must lie strictly between 0 and 1")
-    if isinstance(config, GAILConfig):
-        if not 0.0 <= config.gamma < 1.0:
-            raise UserError("--gamma must lie in [0, 1)")
-        if not 0.0 <= config.gae_lambda <= 1.0:
-            raise UserError("--gae-lambda must lie in [0, 1]")
-        if config.clip_range <= 0.0:
-            raise UserError("--clip-range must be positive")
-        if config.target_kl < 0.0:
-            raise UserError("--target-kl must be at least 0 (0: no early stop)")
+    """Refuse settings that cannot work (NaN anywhere, a count below 1, ...), in one line."""
+    harness.check_choices(config, {"sampling": expert.SAMPLING_MODES})
+    counts = ("trajectories", "total_steps", "eval_every", "eval_episodes", "batch_size")
+    counts += ("patience", "rollout_steps", "ppo_epochs", "minibatch_size", "policy_hidden")
+    counts += ("value_hidden", "discriminator_hidden", "discriminator_steps")
+    counts += ("discriminator_batch",)
+    positive = ("lr", "policy_lr", "value_lr", "discriminator_lr", "clip_range", "max_grad_norm")
+    at_least_0 = ("seed", "demo_seed", "checkpoint_every", "log_every", "target_kl")
+    harness.check_numbers(
+        config,
+        {name: (1, math.inf, "[)") for name in counts}
+        | {name: (0, math.inf, "()") for name in positive}
+        | {name: (0, math.inf, "[)") for name in (*at_least_0, "entropy_coef")}
+        | {"validation_fraction": (0, 1, "()"), "gamma": (0, 1, "[)"), "gae_lambda": (0, 1, "[]")},
+    )
 
 
 # ----------------------------------------------------------------------------------------
@@ -301,7 +259,7 @@ class GaussianSpaces(offpac_il.Spaces):
 
 
 # ----------------------------------------------------------------------------------------
-# Optimiser: PPO and BC as published use Adam (nets.Adam, shared with lab/sac.py).
+# Optimiser: PPO and BC as published use Adam (lab/optim.py, shared with lab/sac.py).
 # ----------------------------------------------------------------------------------------
 
 
@@ -475,7 +433,7 @@ class Rollout:
 @dataclass
 class BCAgent:
     policy: GaussianPolicy
-    optimizer: nets.Adam
+    optimizer: optim.Adam
     best_policy: GaussianPolicy  # the parameters with the best validation likelihood
     best_validation_nll: float = math.inf
     best_update: int = 0
@@ -510,9 +468,9 @@ class GAILAgent:
     policy: GaussianPolicy
     value: nets.MLP
     discriminator: nets.MLP
-    policy_optimizer: nets.Adam = field(default_factory=nets.Adam)
-    value_optimizer: nets.Adam = field(default_factory=nets.Adam)
-    discriminator_optimizer: nets.Adam = field(default_factory=nets.Adam)
+    policy_optimizer: optim.Adam = field(default_factory=optim.Adam)
+    value_optimizer: optim.Adam = field(default_factory=optim.Adam)
+    discriminator_optimizer: optim.Adam = field(default_factory=optim.Adam)
     diagnostics: list[dict] = field(default_factory=list)
 
     def state(self) -> dict[str, np.ndarray]:
@@ -561,15 +519,6 @@ def method_of(config: RunSettings) -> str:
     return "bc-gail" if config.bc_init else "gail"
 
 
-def demo_path_of(settings: dict) -> Path:
-    """The demonstration file that a run's settings (as in its config.json) name."""
-    if settings["demos"]:
-        return Path(settings["demos"])
-    return expert.default_demos_path(
-        settings["env"], settings["trajectories"], settings["sampling"], settings["demo_seed"]
-    )
-
-
 @dataclass
 class Run:
     """What both loops need around their updates: environment, demonstrations in the
@@ -595,13 +544,7 @@ class Run:
         run_dir = Path(config.run_dir or f"runs/{method}-{config.env}-seed{config.seed}")
         env = expert.make_env(config.env)
         random_return, expert_return = expert.references_or_nan(config.env)
-        if config.demos:
-            demo_path = Path(config.demos)
-        else:
-            demo_path = expert.ensure_demos(
-                config.env, config.trajectories, config.sampling, config.demo_seed
-            )
-        demos = expert.load_demos(demo_path, config.env)
+        demos = expert.load_demos(expert.demo_path(config), config.env)
         # The learner's own state standardisation and action scaling (absorbing: never).
         learner_spaces = offpac_il.make_spaces(
             env, demos, offpac_il.Config(standardize=config.standardize, termination="zero")
@@ -728,7 +671,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> harness.Progress:
     policy = GaussianPolicy.create(
         states.shape[1], actions.shape[1], config.policy_hidden, config.log_std_init, rng
     )
-    agent = BCAgent(policy, nets.Adam(), policy.copy())
+    agent = BCAgent(policy, optim.Adam(), policy.copy())
     run.start(agent, rng, resume)
     progress, grad_norm = run.progress, math.nan
     while True:
@@ -882,8 +825,8 @@ def load_bc_init(config: GAILConfig, policy: GaussianPolicy) -> None:
     ]
     if tuple(saved.get("policy_hidden", ())) != config.policy_hidden:
         different.append("policy_hidden")
-    this_demos = demo_path_of(dataclasses.asdict(config))
-    if demo_path_of(saved).resolve() != this_demos.resolve():
+    theirs = expert.demo_path(saved_settings(saved), make=False)
+    if theirs.resolve() != expert.demo_path(config, make=False).resolve():
         different.append("demonstrations")
     if different:
         raise UserError(f"--bc-init {bc_dir}: its {', '.join(different)} differ from this run's")
@@ -1023,15 +966,14 @@ def config_from(args: argparse.Namespace) -> RunSettings:
     return config
 
 
+def run(args: argparse.Namespace, argv: list[str]) -> None:
+    config = config_from(args)
+    train = train_bc if isinstance(config, BCConfig) else train_gail
+    train(config, resume=bool(args.resume))
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-
-    def run() -> None:
-        config = config_from(args)
-        train = train_bc if isinstance(config, BCConfig) else train_gail
-        train(config, resume=bool(args.resume))
-
-    return harness.run_cli(run)
+    return harness.cli_main(argv, lambda argv: build_parser().parse_args(argv), run)
 
 
 if __name__ == "__main__":

@@ -1465,7 +1465,7 @@ def main(argv=None) -> int:
 
 def run_command(argv) -> int:
     """main's work; a user's mistake raises UserError."""
-    from expert import positive_int
+    from harness import positive_int
 
     parser = harness.CommandLineParser(
         prog="python -m lab.experiments", description=__doc__.splitlines()[0]

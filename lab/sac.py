@@ -6,7 +6,7 @@ version of SAC with twin Q-functions and a learned entropy temperature. Equation
 below are that paper's. ARS (lab/ars.py) trains the Hopper, HalfCheetah and Humanoid
 experts; it falls short of the targets on Walker2d and Ant within a practical budget on 2
 cores, so those are trained here: ``python -m lab.sac --env Walker2d-v4`` from the
-repository root (``--help`` lists every setting).
+repository root (``--help`` lists every setting; ``--resume RUN_DIR`` continues a run).
 
 The paper's symbols and where they live:
 
@@ -54,14 +54,11 @@ evaluated policy goes to the expert file (default ``experts/<env>.npz``), in the
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
-import shlex
 import sys
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -71,6 +68,9 @@ import expert
 import harness
 import nets
 from harness import UserError
+from lab import optim, shipping, table
+
+TRAINER = "SAC (Haarnoja et al. 2018, arXiv:1812.05905), lab/sac.py"  # in the expert file
 
 # ----------------------------------------------------------------------------------------
 # Hyperparameters. The command line has one --flag per field, its help the docstring.
@@ -81,6 +81,14 @@ from harness import UserError
 class SACConfig:
     """SAC settings; the defaults are the SB3 / rl-zoo / CleanRL settings for MuJoCo."""
 
+    env: str = ""
+    """Gymnasium environment id, e.g. Walker2d-v4 (required)."""
+    seed: int = 0
+    """Seed of the run's one Generator (the environment's resets are drawn from it)."""
+    out: str = ""
+    """Expert file for the best evaluated policy; empty: experts/<env>.npz."""
+    run_dir: str = ""
+    """Run directory; empty: runs/sac-<env>-seed<seed>."""
     steps: int = 1_000_000
     """Training budget in environment steps (evaluation episodes not counted)."""
     hidden: tuple[int, ...] = (256, 256)
@@ -130,6 +138,8 @@ def check_config(config: SACConfig) -> None:
     )
     if not config.hidden:
         raise UserError("--hidden needs at least one layer")
+    if not config.env:
+        raise UserError("--env is required, e.g. --env Walker2d-v4")
 
 
 # ----------------------------------------------------------------------------------------
@@ -330,12 +340,12 @@ class Agent:
     q2: nets.MLP
     target_q1: nets.MLP
     target_q2: nets.MLP
-    log_alpha: dict[str, np.ndarray]  # {"log_alpha": (1,) float64}: a dict for nets.Adam
+    log_alpha: dict[str, np.ndarray]  # {"log_alpha": (1,) float64}: a dict for Adam
     target_entropy: float
-    policy_optimizer: nets.Adam = field(default_factory=nets.Adam)
-    q1_optimizer: nets.Adam = field(default_factory=nets.Adam)
-    q2_optimizer: nets.Adam = field(default_factory=nets.Adam)
-    alpha_optimizer: nets.Adam = field(default_factory=nets.Adam)
+    policy_optimizer: optim.Adam = field(default_factory=optim.Adam)
+    q1_optimizer: optim.Adam = field(default_factory=optim.Adam)
+    q2_optimizer: optim.Adam = field(default_factory=optim.Adam)
+    alpha_optimizer: optim.Adam = field(default_factory=optim.Adam)
 
     @classmethod
     def create(cls, dim_s: int, dim_a: int, config: SACConfig, rng, dtype=np.float32) -> Agent:
@@ -512,46 +522,35 @@ class ReplayBuffer:
 # The run: progress, checkpoints, evaluation and the training loop.
 # ----------------------------------------------------------------------------------------
 
-PROGRESS_FIELDS = (
-    "env_steps",
-    "wall_seconds",
-    "updates",
-    "episodes",
-    "eval_return_mean",
-    "eval_return_std",
-    "train_return",
-    "alpha",
-    "entropy",
-    "critic_loss",
-    "policy_loss",
-    "q_mean",
-    "steps_per_second",
-)
 UPDATE_STATS = ("alpha", "entropy", "critic_loss", "policy_loss", "q_mean")
+# harness.Progress.record's columns, then the means of the updates since the last row.
+PROGRESS_FIELDS = (
+    *("interactions", "wall_seconds", "updates", "episodes", "eval_return_mean"),
+    *("eval_return_std", "normalized_score", "train_return", *UPDATE_STATS, "steps_per_second"),
+)
 
 
 @dataclass
-class Progress:
-    """Counters a checkpoint must restore, besides networks, buffer and Generator."""
+class Progress(harness.Progress):
+    """harness.Progress (interactions are env steps), and what SAC adds: the best
+    evaluation's std and env steps, the command of each session, and the sums of the update
+    statistics since the last evaluation."""
 
-    env_steps: int = 0
-    updates: int = 0
-    episodes: int = 0
-    eval_rounds: int = 0
-    wall_seconds: float = 0.0
-    best_return: float = -math.inf
     best_return_std: float = 0.0
     best_env_steps: int = 0
     commands: list[str] = field(default_factory=list)
-    recent_returns: list[float] = field(default_factory=list)  # since the last evaluation
-    stat_sums: dict[str, float] = field(default_factory=dict)  # of updates since then
+    stat_sums: dict[str, float] = field(default_factory=dict)
     stat_count: int = 0
-    rows: list[dict] = field(default_factory=list)
 
-    @property
-    def interactions(self) -> int:
-        """The environment steps, by the name harness.Clock reads."""
-        return self.env_steps
+
+# The names of runs saved before SAC shared harness.Progress (results/sac-ant-seed0).
+OLD_NAMES = {"env_steps": "interactions", "best_return": "best_eval_return"}
+
+
+def progress_of(rows: list[dict], **counters) -> Progress:
+    """A checkpoint's Progress, its counters and rows under today's names."""
+    renamed = [{OLD_NAMES.get(k, k): v for k, v in d.items()} for d in (counters, *rows)]
+    return Progress(**renamed[0], rows=renamed[1:])
 
 
 REPLAY_SEGMENTS = "replay"  # the folder of the replay buffer's segments in a run directory
@@ -575,12 +574,12 @@ def load_checkpoint(run_dir: Path, agent: Agent, replay: ReplayBuffer, rng) -> P
         agent.load_state(arrays)
         replay.load_rows(Path(run_dir) / REPLAY_SEGMENTS, int(arrays["replay/added"]))
 
-    return harness.load_checkpoint(run_dir, rng, load, Progress)
+    return harness.load_checkpoint(run_dir, rng, load, progress_of)
 
 
 def expert_policy(env_id: str, agent: Agent, low, high) -> expert.ExpertPolicy:
     """The deterministic policy tanh(mu(s)) as an expert (a copy of the network)."""
-    return expert.ExpertPolicy(env_id, None, None, None, low, high, network=agent.policy.copy())
+    return expert.ExpertPolicy(env_id, low, high, network=agent.policy.copy())
 
 
 def evaluate(env, policy: expert.ExpertPolicy, seed: int, round_index: int, episodes: int):
@@ -588,178 +587,83 @@ def evaluate(env, policy: expert.ExpertPolicy, seed: int, round_index: int, epis
 
     The reset seeds come from their own Generator, (seed, round), so evaluating never
     shifts the training Generator, and they lie far from the seeds 0..9 of Table 1, so
-    the shipped policy is not chosen on the episodes that `expert.py table` reports.
+    the shipped policy is not chosen on the episodes that lab/table.py reports.
     """
     seeds = np.random.default_rng([seed, round_index]).integers(2**20, 2**31 - 1, episodes)
-    return np.array([expert.run_episode(env, policy.act, int(s))[0] for s in seeds])
+    return table.returns(env, policy.act, seeds)
 
 
-def default_run_dir(env_id: str, seed: int) -> Path:
-    """``<repo>/runs/sac-<env>-seed<seed>`` (``runs/`` is git-ignored)."""
-    return expert.REPO_DIR / "runs" / f"sac-{env_id}-seed{seed}"
-
-
-# What a resumed run may change: its budget, and what only logging and checkpoints read.
-RESUMABLE_CHANGES = ("steps", "checkpoint_every", "log_every")
-
-
-def saved_config(settings: dict) -> SACConfig:
-    """The SACConfig of settings as JSON holds them (lists for tuples)."""
-    return SACConfig(**{k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()})
-
-
-def saved_run(run_dir: Path) -> dict:
-    """A run directory's config.json: env_id, seed, expert_path and config (a SACConfig)."""
-    saved = harness.read_config(run_dir)
-    try:
-        saved["config"] = saved_config(saved["sac"])
-    except (KeyError, TypeError, AttributeError):
-        raise UserError(f"{run_dir} holds no SAC run (its config.json is not one)") from None
-    return saved
-
-
-def train(
-    env_id: str,
-    seed: int,
-    config: SACConfig,
-    run_dir: Path,
-    expert_path: Path,
-    resume: bool = False,
-    command: str = "",
-    log: Callable[[str], None] = print,
-) -> Progress:
+def train(config: SACConfig, resume: bool = False, command: str = "", log=shipping.say) -> Progress:
     """Train SAC until `config.steps` environment steps; keep the best evaluated policy.
 
     A fresh run refuses a run directory that holds a checkpoint. `resume` continues the
     run from its last checkpoint exactly (same Generator state, same buffer); `config`
-    must then be the run's own (`saved_run`), but for RESUMABLE_CHANGES (the budget).
+    must then be the run's own (config.json), but for RESUMABLE_CHANGES (the budget).
     A run stopped by its budget in the middle of an episode, then extended, starts the
     extension with a fresh episode; a killed run continues exactly where its checkpoint is.
     """
-    run_dir, expert_path = Path(run_dir), Path(expert_path)
     check_config(config)
-    expert.make_env(env_id).close()  # a wrong environment is refused before anything is written
-    harness.open_run_dir(run_dir, resume)
-    if resume:
-        saved = saved_run(run_dir)
-        if saved["env_id"] != env_id:
-            raise UserError(f"{run_dir} is a run on {saved['env_id']}, not {env_id}")
-        kept = {name: getattr(saved["config"], name) for name in RESUMABLE_CHANGES}
-        if dataclasses.replace(config, **kept) != saved["config"]:
-            changeable = ", ".join(map(harness.flag, RESUMABLE_CHANGES))
-            raise UserError(f"--resume continues {run_dir}; only {changeable} may change")
-        seed = saved["seed"]
-
-    env, eval_env = expert.make_env(env_id), expert.make_env(env_id)
+    env, eval_env = expert.make_env(config.env), expert.make_env(config.env)  # before any file
+    run_dir = harness.open_run_dir(
+        config.run_dir or expert.REPO_DIR / "runs" / f"sac-{config.env}-seed{config.seed}", resume
+    )
+    expert_path = Path(config.out or expert.default_expert_path(config.env))
     dim_s, dim_a = expert.env_dimensions(env)
     low = env.action_space.low.astype(np.float64)
     high = env.action_space.high.astype(np.float64)
-    rng = np.random.default_rng(seed)  # the run's one Generator, passed explicitly
+    references = expert.references_or_nan(config.env)
+    rng = np.random.default_rng(config.seed)  # the run's one Generator, passed explicitly
     agent = Agent.create(dim_s, dim_a, config, rng)
     replay = ReplayBuffer(config.replay_size, dim_s, dim_a)
     if resume:
         progress = load_checkpoint(run_dir, agent, replay, rng)
-        log(f"resumed {run_dir} at {progress.env_steps} env steps")
+        log(f"resumed {run_dir} at {progress.interactions} env steps")
     else:
-        progress = Progress()
-        record = {
-            "env_id": env_id,
-            "seed": seed,
-            "expert_path": str(expert_path),
-            "sac": dataclasses.asdict(config),
-        }
-        harness.write_config(run_dir, record)
-        # A fresh run must not replace a shipped expert with a worse one (as ARS).
-        if expert_path.exists():
-            try:
-                existing = expert.load_expert(env_id, expert_path)
-                progress.best_return = float(existing.metadata.get("eval_return_mean", -np.inf))
-                log(
-                    f"{expert_path} exists (eval return {progress.best_return:.1f}); "
-                    f"it is replaced only by a better evaluation"
-                )
-            except UserError:
-                pass
+        progress = Progress(best_eval_return=shipping.bar_to_beat(config.env, expert_path, log))
+        harness.write_config(run_dir, dataclasses.asdict(config))
+        # A resume needs progress.csv: a kill right after the first checkpoint finds one.
+        harness.write_text(run_dir / harness.PROGRESS, harness.progress_csv([], PROGRESS_FIELDS))
     progress.commands.append(command)
-    log(
-        f"SAC on {env_id}: seed {seed}, run dir {run_dir}, expert file {expert_path}, "
-        f"{json.dumps(dataclasses.asdict(config))}"
-    )
-
-    def write_expert() -> None:
-        expert_policy(env_id, agent, low, high).save(
-            expert_path,
-            trainer="SAC (Haarnoja et al. 2018, arXiv:1812.05905), lab/sac.py",
-            commands=list(progress.commands),
-            seed=seed,
-            hyperparameters=dataclasses.asdict(config),
-            env_steps=progress.best_env_steps,
-            wall_seconds=round(progress.wall_seconds, 1),
-            eval_return_mean=progress.best_return,
-            eval_return_std=progress.best_return_std,
-            eval_episodes=config.eval_episodes,
-        )
+    settings = json.dumps(dataclasses.asdict(config))
+    log(f"SAC: run dir {run_dir}, expert file {expert_path}, settings {settings}")
 
     def evaluate_now() -> None:
+        policy = expert_policy(config.env, agent, low, high)
         returns = evaluate(
-            eval_env,
-            expert_policy(env_id, agent, low, high),
-            seed,
-            progress.eval_rounds,
-            config.eval_episodes,
+            eval_env, policy, config.seed, progress.eval_rounds, config.eval_episodes
         )
-        progress.eval_rounds += 1
         clock.tick()
-        improved = returns.mean() > progress.best_return
-        if improved:
-            progress.best_return, progress.best_return_std = returns.mean(), returns.std()
-            progress.best_env_steps = progress.env_steps
-            write_expert()
-        previous = progress.rows[-1] if progress.rows else {"env_steps": 0, "wall_seconds": 0}
+        previous = progress.rows[-1] if progress.rows else {"interactions": 0, "wall_seconds": 0}
         count = max(progress.stat_count, 1)
-        recent = progress.recent_returns
-        progress.rows.append(
-            {
-                "env_steps": progress.env_steps,
-                "wall_seconds": round(progress.wall_seconds, 1),
-                "updates": progress.updates,
-                "episodes": progress.episodes,
-                "eval_return_mean": round(float(returns.mean()), 2),
-                "eval_return_std": round(float(returns.std()), 2),
-                "train_return": round(float(np.mean(recent)), 2) if recent else "",
-                **{
-                    name: harness.rounded(progress.stat_sums[name] / count)
-                    if name in progress.stat_sums
-                    else ""
-                    for name in UPDATE_STATS
-                },
-                "steps_per_second": round(
-                    (progress.env_steps - previous["env_steps"])
-                    / max(progress.wall_seconds - previous["wall_seconds"], 1e-9),
-                    2,
-                ),
-            }
+        measured = {name: total / count for name, total in progress.stat_sums.items()}
+        measured["steps_per_second"] = (progress.interactions - previous["interactions"]) / max(
+            progress.wall_seconds - previous["wall_seconds"], 1e-9
         )
-        recent.clear()
+        score = expert.normalized_score(float(returns.mean()), references)
+        progress.record(returns, score, measured, PROGRESS_FIELDS)
         progress.stat_sums, progress.stat_count = {}, 0
-        harness.write_text(
-            run_dir / harness.PROGRESS, harness.progress_csv(progress.rows, PROGRESS_FIELDS)
-        )
+        improved = returns.mean() > progress.best_eval_return
+        if improved:
+            progress.best_eval_return, progress.best_return_std = returns.mean(), returns.std()
+            progress.best_env_steps = progress.interactions
+            shipping.ship(policy, expert_path, returns, TRAINER, progress, config.seed, config)
+        csv = harness.progress_csv(progress.rows, PROGRESS_FIELDS)
+        harness.write_text(run_dir / harness.PROGRESS, csv)
         log(
-            f"eval   env steps {progress.env_steps:9d}  wall {progress.wall_seconds:9.1f} s  "
+            f"eval   env steps {progress.interactions:9d}  wall {progress.wall_seconds:9.1f} s  "
             f"return {returns.mean():8.1f} ± {returns.std():6.1f}"
             + ("  (best, saved)" if improved else "")
         )
 
     clock = harness.Clock(progress, config.checkpoint_every, config.log_every)
-    last_log, steps_at_log, updates_at_log = clock.start, progress.env_steps, progress.updates
+    last_log, steps_at_log, updates_at_log = clock.start, progress.interactions, progress.updates
     observation, episode_return = None, 0.0
     with env, eval_env:
-        while progress.env_steps < config.steps:
+        while progress.interactions < config.steps:
             if observation is None:  # a new episode; checkpoints are taken only here
                 observation, _ = env.reset(seed=int(rng.integers(2**31)))
                 episode_return = 0.0
-            if progress.env_steps < config.learning_starts:
+            if progress.interactions < config.learning_starts:
                 action = rng.uniform(-1.0, 1.0, dim_a).astype(np.float32)
             else:
                 state = observation[None].astype(np.float32)  # (1, dim S)
@@ -770,18 +674,19 @@ def train(
             )
             # Only a true termination stops the bootstrap; a time limit does not.
             replay.add(observation, action, reward, next_observation, terminated)
-            progress.env_steps += 1
+            progress.interactions += 1
             episode_return += float(reward)
             observation = next_observation
 
-            if progress.env_steps >= config.learning_starts:
+            if progress.interactions >= config.learning_starts:
                 stats = update(agent, replay.sample(rng, config.batch_size), config, rng)
                 progress.updates += 1
                 for name in UPDATE_STATS:
                     progress.stat_sums[name] = progress.stat_sums.get(name, 0.0) + stats[name]
                 progress.stat_count += 1
 
-            if progress.env_steps % config.eval_every == 0 or progress.env_steps == config.steps:
+            done = progress.interactions == config.steps
+            if progress.interactions % config.eval_every == 0 or done:
                 evaluate_now()
 
             clock.tick()
@@ -789,8 +694,9 @@ def train(
                 now = time.perf_counter()
                 seconds = max(now - last_log, 1e-9)
                 log(
-                    f"train  env steps {progress.env_steps:9d}  wall {progress.wall_seconds:9.1f} s"
-                    f"  {(progress.env_steps - steps_at_log) / seconds:6.1f} steps/s"
+                    f"train  env steps {progress.interactions:9d}"
+                    f"  wall {progress.wall_seconds:9.1f} s"
+                    f"  {(progress.interactions - steps_at_log) / seconds:6.1f} steps/s"
                     f"  {(progress.updates - updates_at_log) / seconds:6.1f} updates/s"
                     f"  alpha {agent.alpha:.4f}  episodes {progress.episodes}"
                     + (
@@ -799,7 +705,8 @@ def train(
                         else ""
                     )
                 )
-                last_log, steps_at_log, updates_at_log = now, progress.env_steps, progress.updates
+                last_log, steps_at_log = now, progress.interactions
+                updates_at_log = progress.updates
 
             if terminated or truncated:
                 progress.recent_returns.append(episode_return)
@@ -811,9 +718,9 @@ def train(
                     harness.stop_if_requested()
         save_checkpoint(run_dir, agent, replay, progress, rng)  # at the budget's end
     log(
-        f"done: {progress.env_steps} env steps; best eval return {progress.best_return:.1f} "
-        f"± {progress.best_return_std:.1f} at {progress.best_env_steps} env steps; "
-        f"expert in {expert_path}"
+        f"done: {progress.interactions} env steps; best eval return "
+        f"{progress.best_eval_return:.1f} ± {progress.best_return_std:.1f} at "
+        f"{progress.best_env_steps} env steps; expert in {expert_path}"
     )
     return progress
 
@@ -822,69 +729,21 @@ def train(
 # Command line: python -m lab.sac --env ENV [flags], one flag per SACConfig field.
 # ----------------------------------------------------------------------------------------
 
-SETTINGS = tuple(f.name for f in dataclasses.fields(SACConfig))
+# What a resumed run may change: its budget, its expert file, and what only logging and
+# checkpoints read.
+RESUMABLE_CHANGES = ("steps", "out", "checkpoint_every", "log_every")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = harness.CommandLineParser(
-        prog="python -m lab.sac",
-        description=__doc__.splitlines()[0],
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    parser.add_argument("--env", required=True, help="gymnasium id, e.g. Walker2d-v4")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the run's one Generator")
-    parser.add_argument(
-        "--run-dir", default="", help="run directory; empty: runs/sac-<env>-seed<seed>"
-    )
-    parser.add_argument(
-        "--out", default="", help="expert file; empty: experts/<env>.npz (on --resume: the run's)"
-    )
-    parser.add_argument(
-        "--resume",
-        action="store_true",
-        help="continue the run in --run-dir exactly, with its settings (only "
-        + ", ".join(map(harness.flag, RESUMABLE_CHANGES))
-        + " may change)",
-    )
-    harness.add_dataclass_flags(parser, SACConfig)
-    return parser
-
-
-def run_from_args(args: argparse.Namespace, argv: list[str]) -> Progress:
-    run_dir = Path(args.run_dir) if args.run_dir else default_run_dir(args.env, args.seed)
-    if args.resume:
-        saved = saved_run(run_dir)
-        parser = build_parser()
-        for action in parser._actions:  # only the flags given (not set_defaults: argparse
-            action.default = argparse.SUPPRESS  # would parse its SUPPRESS string as a value)
-        given = {k: v for k, v in vars(parser.parse_args(argv)).items() if k in SETTINGS}
-        settings = harness.resumed_settings(saved["sac"], given, RESUMABLE_CHANGES)
-        config = SACConfig(
-            **{k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()}
-        )
-        seed, out = saved["seed"], Path(args.out or saved["expert_path"])
-    else:
-        config = harness.config_from_args(SACConfig, args)
-        seed, out = args.seed, Path(args.out) if args.out else expert.default_expert_path(args.env)
-    return train(
-        args.env,
-        seed,
-        config,
-        run_dir,
-        out,
-        resume=args.resume,
-        command=shlex.join(["python", "-m", "lab.sac", *argv]),
-        log=lambda line: print(line, flush=True),
-    )
+def parse(argv: list[str]) -> tuple[SACConfig, bool]:
+    description = __doc__.splitlines()[0]
+    return harness.config_from_command_line(argv, SACConfig, description, {}, RESUMABLE_CHANGES)
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    try:
-        args = build_parser().parse_args(argv)
-    except SystemExit as exit:  # --help, or a bad flag (its one line already printed)
-        return exit.code
-    return harness.run_cli(lambda: run_from_args(args, argv))
+    def run(parsed, argv) -> Progress:
+        return train(*parsed, command=shipping.command_line("lab.sac", argv))
+
+    return harness.cli_main(argv, parse, run)
 
 
 if __name__ == "__main__":

@@ -97,7 +97,7 @@ def test_train_command_writes_expert_and_checkpoint(tmp_path, capsys):
     assert ars.ARSState.load(checkpoint).config.steps == 4000
     capsys.readouterr()
     assert ars.main([*resume, "--noise", "0.2", "--out", str(out)]) == 2
-    assert "only --steps" in capsys.readouterr().err
+    assert "may change only: --steps" in capsys.readouterr().err
     # A fresh run does not overwrite a checkpoint that holds a run.
     assert ars.main(arguments) == 2
     assert "already holds a run" in capsys.readouterr().err

@@ -1,5 +1,6 @@
 """Tests for expert.py: demonstrations, their validation, the CLI's errors, Minari import,
-the shipped experts and Table 1 (ARS training: tests/test_ars.py).
+the shipped experts and reading Table 1 (measuring it: tests/test_table.py; training
+experts: tests/test_ars.py, tests/test_sac.py).
 
 Tests that need an expert use a hand-made linear controller for InvertedPendulum-v4 (it
 balances the pole for the full 1000 steps), so they never wait for a long training run; only
@@ -11,6 +12,7 @@ import subprocess
 import sys
 import warnings
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -259,8 +261,15 @@ def test_cli_discrete_env_is_one_line_and_exit_2(tmp_path):
 
 def test_cli_has_no_training_commands():
     result = run_cli("--help")
-    assert result.returncode == 0 and "demos" in result.stdout and "table" in result.stdout
+    assert result.returncode == 0 and "demos" in result.stdout and "check-demos" in result.stdout
     assert "train" not in result.stdout  # the expert trainers are lab/ars.py and lab/sac.py
+    assert "table" not in result.stdout  # measuring Table 1 is lab/table.py's
+
+
+def test_cli_bad_flag_is_one_line_and_exit_2(capsys):
+    assert expert.main(["demos", "--env", PENDULUM, "--trajectories", "0"]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "--trajectories" in error and "at least 1" in error
 
 
 # --- Minari import -----------------------------------------------------------------------------
@@ -353,8 +362,6 @@ def test_shipped_hopper_expert_loads_and_acts():
     action = policy.act(np.zeros(11))
     assert action.shape == (3,) and np.all(np.abs(action) <= 1.0)
     assert "train --env Hopper-v4" in policy.metadata["commands"][0]
-    returns = expert.evaluate("Hopper-v4", policy.act, episodes=1, seed=0)
-    assert returns[0] > 3000
 
 
 def test_reference_returns(tmp_path):
@@ -373,4 +380,15 @@ def test_reference_returns(tmp_path):
         expert.reference_returns("Ant-v4", path)
     with pytest.raises(UserError, match="Walker2d-v4"):
         expert.reference_returns("Walker2d-v4", path)
-    assert "missing" in expert.table_markdown(table)
+    with pytest.raises(UserError, match="python -m lab.table"):
+        expert.reference_returns("Hopper-v4", tmp_path / "absent.json")
+
+
+def test_demo_path_is_the_given_file_or_the_default_demonstrations(tmp_path, monkeypatch):
+    monkeypatch.setattr(expert, "DEMOS_DIR", tmp_path)
+    settings = SimpleNamespace(
+        demos="", env=PENDULUM, trajectories=1, sampling="dense", demo_seed=2
+    )
+    default = tmp_path / f"{PENDULUM}-dense-1traj-seed2.npz"
+    assert expert.demo_path(settings, make=False) == default and not default.exists()
+    assert expert.demo_path(SimpleNamespace(demos="my.npz")) == Path("my.npz")

@@ -11,6 +11,7 @@ are rejected: there the difference measures neither side's slope.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import subprocess
@@ -31,6 +32,7 @@ import expert
 import harness
 import nets
 from lab import sac
+from lab import table as lab_table
 
 ROOT = Path(__file__).resolve().parent.parent
 DIM_S, DIM_A = 3, 2
@@ -382,6 +384,7 @@ def test_replay_segments_missing_rows_are_reported(tmp_path):
 
 PENDULUM = "InvertedPendulum-v4"
 TINY = sac.SACConfig(
+    env=PENDULUM,
     steps=600,
     hidden=(16, 16),
     batch_size=32,
@@ -403,9 +406,9 @@ def final_params(run_dir: Path) -> dict[str, np.ndarray]:
 
 
 def run_tiny(run_dir: Path, resume=False, seed=0, config=TINY) -> sac.Progress:
-    return sac.train(
-        PENDULUM, seed, config, run_dir, run_dir / "expert.npz", resume=resume, log=lambda _: None
-    )
+    config = dataclasses.replace(config, seed=seed, run_dir=str(run_dir))
+    config = dataclasses.replace(config, out=str(run_dir / "expert.npz"))
+    return sac.train(config, resume=resume, log=lambda _: None)
 
 
 def interrupted_after(updates: int):
@@ -431,11 +434,11 @@ def test_resume_reproduces_an_uninterrupted_run(tmp_path, monkeypatch):
         with pytest.raises(KeyboardInterrupt):
             run_tiny(interrupted)
     counters = json.loads(str(harness.load_arrays(interrupted / "checkpoint.npz")["counters"]))
-    assert 200 < counters["env_steps"] < 450  # checkpointed after some updates, not at 0
+    assert 200 < counters["interactions"] < 450  # checkpointed after some updates, not at 0
     run_tiny(interrupted, resume=True)
 
     expected = read_progress(whole)
-    assert [int(row["env_steps"]) for row in expected] == [200, 400, 600]
+    assert [int(row["interactions"]) for row in expected] == [200, 400, 600]
     assert read_progress(other) != expected
     assert read_progress(interrupted) == expected
     final = final_params(whole)
@@ -445,7 +448,7 @@ def test_resume_reproduces_an_uninterrupted_run(tmp_path, monkeypatch):
     best = max(expected, key=lambda row: float(row["eval_return_mean"]))
     policy = expert.load_expert(PENDULUM, interrupted / "expert.npz")
     assert policy.kind == expert.SAC_MLP
-    assert policy.metadata["env_steps"] == int(best["env_steps"])
+    assert policy.metadata["env_steps"] == int(best["interactions"])
     assert policy.metadata["eval_return_mean"] == pytest.approx(float(best["eval_return_mean"]))
 
 
@@ -458,6 +461,9 @@ def test_sac_improves_pendulum(tmp_path):
     (median -150). The threshold -800 leaves a margin of 300 below the worst seed.
     """
     config = sac.SACConfig(
+        env="Pendulum-v1",
+        run_dir=str(tmp_path / "run"),
+        out=str(tmp_path / "e.npz"),
         steps=4000,
         hidden=(64, 64),
         lr=1e-3,
@@ -468,9 +474,7 @@ def test_sac_improves_pendulum(tmp_path):
         checkpoint_every=1e9,
         log_every=1e9,
     )
-    progress = sac.train(
-        "Pendulum-v1", 0, config, tmp_path / "run", tmp_path / "e.npz", log=lambda _: None
-    )
+    progress = sac.train(config, log=lambda _: None)
     returns = [row["eval_return_mean"] for row in progress.rows]
     assert len(returns) == 4 and returns[0] < -1000, returns
     assert max(returns) > -800, returns
@@ -495,13 +499,10 @@ def balancing_sac_expert() -> expert.ExpertPolicy:
     }
     return expert.ExpertPolicy(
         PENDULUM,
-        None,
-        None,
-        None,
         np.array([-3.0]),
         np.array([3.0]),
-        {"commands": ["hand-made test controller"], "seed": 0},
         network=nets.MLP([4, 2, 2], "identity", params),
+        metadata={"commands": ["hand-made test controller"], "seed": 0},
     )
 
 
@@ -522,7 +523,7 @@ def test_sac_expert_file_serves_load_demos_and_table(tmp_path, monkeypatch):
     demos = expert.load_demos(out, PENDULUM)
     assert len(demos) == 100 and demos.returns.tolist() == [1000.0]
     # table: the expert row is measured with the SAC policy.
-    table = expert.measure_table(episodes=2, tasks=(PENDULUM,), log=lambda _: None)
+    table = lab_table.measure_table(episodes=2, tasks=(PENDULUM,), log=lambda _: None)
     assert table[PENDULUM]["expert_mean"] == 1000.0
     # ... and records what its last bits depend on (library versions, BLAS kernel).
     assert set(table[PENDULUM]["measured_with"]) == {"numpy", "mujoco", "gymnasium", "blas_kernel"}
@@ -576,15 +577,16 @@ def test_command_line_trains_resumes_and_refuses_mixed_flags(tmp_path, capsys):
     assert policy.kind == expert.SAC_MLP and policy.metadata["seed"] == 0
     assert "lab.sac --env" in policy.metadata["commands"][0]
     # A bigger budget continues the run; other settings cannot change on resume.
-    assert sac.main(train_command(run_dir, "--resume", "--steps", "800")) == 0
-    assert [r["env_steps"] for r in read_progress(run_dir)] == ["200", "400", "600", "800"]
+    assert sac.main(["--resume", str(run_dir), "--steps", "800"]) == 0
+    assert [r["interactions"] for r in read_progress(run_dir)] == ["200", "400", "600", "800"]
     capsys.readouterr()
     for refused, message in [
-        (train_command(run_dir, "--resume", "--lr", "1e-3"), "may change only: --steps"),
+        (["--resume", str(run_dir), "--lr", "1e-3"], "may change only: --steps"),
         (train_command(run_dir, *TINY_FLAGS), "already holds a run"),
         (train_command(tmp_path / "new", "--directions", "8"), "--directions"),  # an ARS flag
         (train_command(tmp_path / "new", "--gamma", "nan"), "--gamma"),
-        (train_command(tmp_path / "absent", "--resume"), "holds no run"),
+        (["--resume", str(tmp_path / "absent")], "holds no run"),
+        (["--run-dir", str(tmp_path / "new")], "--env is required"),
     ]:
         assert sac.main(refused) == 2
         error = capsys.readouterr().err
@@ -606,7 +608,7 @@ def test_kill_and_resume_from_the_command_line(tmp_path):
         time.sleep(0.02)
     process.kill()
     process.wait()
-    assert sac.main(train_command(run_dir, "--resume")) == 0
+    assert sac.main(["--resume", str(run_dir)]) == 0
     whole = tmp_path / "whole"
     assert sac.main(train_command(whole, *TINY_FLAGS)) == 0
     assert read_progress(run_dir) == read_progress(whole)
