@@ -221,7 +221,7 @@ def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
                 names = [key for key in file.files if key.startswith("policy/")]
                 params = {key.removeprefix("policy/"): file[key] for key in names}
                 policy.network = nets.MLP([int(n) for n in file["sizes"]], "identity", params)
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as error:
+    except (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile) as error:
         raise UserError(f"{path}: not a valid expert file ({error})") from None
     if policy.env_id != env_id:
         raise UserError(f"{path}: expert was trained on {policy.env_id}, not {env_id}")
@@ -485,13 +485,7 @@ def load_demos(path: Path, env_id: str) -> Demos:
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: no such demonstration file")
-    try:
-        # Read every member now: a truncated file may open fine and fail on first access.
-        with np.load(path, allow_pickle=False) as file:
-            arrays = {key: file[key] for key in file.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as error:
-        raise UserError(f"{path}: not a valid .npz file ({error})") from None
-    return validate_demos(arrays, env_id, path)
+    return validate_demos(harness.load_arrays(path), env_id, path)
 
 
 def import_minari(

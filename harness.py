@@ -87,7 +87,10 @@ def write_text(path, text: str) -> None:
 def load_arrays(path) -> dict[str, np.ndarray]:
     """Every array of an .npz; a missing, truncated or corrupted file is a UserError."""
     try:
-        with np.load(path, allow_pickle=False) as data:
+        data = np.load(path, allow_pickle=False)
+        if not isinstance(data, np.lib.npyio.NpzFile):
+            raise ValueError("a single array, not an .npz archive")
+        with data:  # every member read now: a truncated file may fail on first access
             return {key: data[key] for key in data.files}
     except FileNotFoundError:
         raise UserError(f"{path}: no such file") from None
@@ -386,9 +389,9 @@ def load_checkpoint(run_dir, rng, load: Callable[[dict], None], progress_class=N
         rows = json.loads(str(arrays.pop("rows")))
         load(arrays)
         rng.bit_generator.state = state
+        return (progress_class or Progress)(**counters, rows=rows)
     except (KeyError, ValueError, TypeError) as error:
         raise UserError(f"{path}: not a checkpoint of this run or version ({error})") from None
-    return (progress_class or Progress)(**counters, rows=rows)
 
 
 def restore_arrays(path, load: Callable[[], None]) -> None:

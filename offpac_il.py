@@ -710,30 +710,35 @@ def restore(run_dir, variant: Variant = OURS):
 def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harness.Progress:
     """Algorithm 1, with evaluation, logging and checkpoints around it."""
     check_config(config)
-    run_dir = harness.open_run_dir(config.run_dir or f"runs/{config.env}-seed{config.seed}", resume)
     env, eval_env = expert.make_env(config.env), expert.make_env(config.env)
     references = expert.references_or_nan(config.env)
     rng = np.random.default_rng(config.seed)  # the run's one Generator, passed explicitly
     spaces, expert_buffer, learner, replay, demo_path = prepare(config, env, rng, variant)
     print(f"demonstrations: {demo_path} ({len(expert_buffer.states)} triplets)", flush=True)
-    if resume:
-        progress = load_checkpoint(run_dir, learner, replay, rng)
-        print(f"resumed {run_dir} at {progress.interactions} interactions", flush=True)
-    else:
-        progress = harness.Progress()
-        harness.write_config(run_dir, dataclasses.asdict(config))
-        print(f"run directory: {run_dir}", flush=True)
+    run_dir = harness.open_run_dir(config.run_dir or f"runs/{config.env}-seed{config.seed}", resume)
+    progress = load_checkpoint(run_dir, learner, replay, rng) if resume else harness.Progress()
+    harness.write_config(run_dir, dataclasses.asdict(config))  # a resume may change the budget
+    started = f"resumed {run_dir} at {progress.interactions} interactions" if resume else run_dir
+    print(f"run directory: {started}", flush=True)
     fields = PROGRESS_FIELDS + variant.progress_fields
     fields += AVERAGE_FIELDS if learner.average_policy is not None else ()
-
     clock = harness.Clock(progress, config.checkpoint_every, config.log_every)
+
+    def check_finite() -> None:  # before acting, and before a checkpoint overwrites the last
+        observations = {"observations": replay.data.states[: replay.size]}
+        harness.check_finite(
+            learner.state() | observations, f"by {progress.interactions} interactions"
+        )
+
+    def checkpoint() -> None:
+        check_finite()
+        harness.save_checkpoint(run_dir, learner.state() | replay.state(), rng, progress, fields)
+        clock.checkpointed()
+
     while True:
         stats = progress.last_stats
         if progress.evaluation_due(config.eval_every, config.total_steps):
-            observations = {"observations": replay.data.states[: replay.size]}
-            harness.check_finite(
-                learner.state() | observations, f"by {progress.interactions} interactions"
-            )
+            check_finite()
             returns, falls = evaluate(eval_env, learner, spaces, config, progress.eval_rounds)
             diagnostics_rng = np.random.default_rng([config.seed, 2, progress.eval_rounds])
             measured = {**stats, **imitation_diagnostics(learner, expert_buffer, diagnostics_rng)}
@@ -770,10 +775,7 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
                 + (f"  averaged PN {row['average_score']:6.3f}" if "average_score" in row else ""),
                 flush=True,
             )
-            harness.save_checkpoint(
-                run_dir, learner.state() | replay.state(), rng, progress, fields
-            )
-            clock.checkpointed()
+            checkpoint()
         if progress.interactions >= config.total_steps:
             break
 
@@ -806,10 +808,7 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
                 flush=True,
             )
         if clock.checkpoint_due():
-            harness.save_checkpoint(
-                run_dir, learner.state() | replay.state(), rng, progress, fields
-            )
-            clock.checkpointed()
+            checkpoint()
             harness.stop_if_requested()
 
     harness.save_arrays(run_dir / "policy_final.npz", learner.policy.state("policy"))

@@ -46,3 +46,14 @@ def hopper_demos(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("demos") / "hopper.npz"
     expert.write_demos(path, expert.make_demos("Hopper-v4", 1, "sparse", seed=0))
     return path
+
+
+@pytest.fixture(autouse=True)
+def release_run_dir_locks():
+    """A run directory stays locked for the life of the process that opened it; the tests
+    train many runs in one process, so each test gives its locks up at its end."""
+    yield
+    import harness
+
+    for run_dir in list(harness._held_locks):
+        harness.release(run_dir)

@@ -24,6 +24,31 @@ def run_script(script: str, *args, check: bool = True) -> subprocess.CompletedPr
     return result
 
 
+def run_module(module: str, *args, check: bool = True) -> subprocess.CompletedProcess:
+    """python -m module args..., from the repository root; raises if check and it fails."""
+    result = subprocess.run(
+        [sys.executable, "-m", module, *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=600,
+    )
+    if check and result.returncode != 0:
+        raise AssertionError(f"exit {result.returncode}: {result.stderr}")
+    return result
+
+
+def assert_one_line_error(result: subprocess.CompletedProcess, *fragments: str) -> str:
+    """Exit status 2 and exactly one line on stderr, "error: ...", holding every fragment;
+    returns that line."""
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    assert len(lines) == 1 and lines[0].startswith("error:"), result.stderr
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+    return lines[0]
+
+
 def read_rows(path: Path, drop=("wall_seconds",)) -> list[dict]:
     """A CSV file's rows as dicts, without the columns in `drop` (wall time differs)."""
     with open(path) as f:

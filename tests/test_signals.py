@@ -1,6 +1,7 @@
 """Ctrl-C or `kill` (SIGINT, SIGTERM) stop a training run at its next checkpoint point
-(nets.stop_at_next_checkpoint): the run saves a checkpoint there, says how to continue and
-exits with status 130, so nothing since its last periodic checkpoint is lost."""
+(harness.stop_at_next_checkpoint): the run saves a checkpoint there, says how to continue
+and exits with status 130, so nothing since its last periodic checkpoint is lost. Every
+trainer: the learner, an ablation, GAIL, SAC and ARS, each as its command line runs."""
 
 from __future__ import annotations
 
@@ -14,45 +15,55 @@ from pathlib import Path
 
 import pytest
 from helpers import ROOT
-from test_baselines import TINY_GAIL_FLAGS
 from test_offpac_il import TINY_RUN
-from test_sac import PENDULUM, TINY_FLAGS
 
-import expert
-import nets
+import harness
 
 LONG = ["--eval-every", "100000", "--checkpoint-every", "1e9", "--log-every", "0"]
+PENDULUM = "InvertedPendulum-v4"
+TINY_GAIL = ["--env", "Hopper-v4", "--eval-episodes", "1", "--policy-hidden", "8", "8"]
+TINY_GAIL += ["--value-hidden", "8", "8", "--discriminator-hidden", "8", "8"]
+TINY_GAIL += ["--rollout-steps", "50", "--ppo-epochs", "2", "--minibatch-size", "16"]
+TINY_GAIL += ["--discriminator-steps", "2", "--discriminator-batch", "16"]
+TINY_SAC = ["--env", PENDULUM, "--hidden", "16", "16", "--batch-size", "32"]
+TINY_SAC += ["--learning-starts", "200", "--eval-episodes", "1"]
 
 
 def command_of(kind: str, run_dir: Path, demos: Path) -> tuple[list[str], str]:
     """(the command line of a long run whose only periodic checkpoint is at its start,
-    the checkpoint counter of its interactions)."""
+    the checkpoint counter of its progress)."""
     if kind == "learner":
         args = ["offpac_il.py", *TINY_RUN, "--demos", demos, "--total-steps", "100000"]
         return [*args, *LONG, "--run-dir", run_dir], "interactions"
+    if kind == "ablation":  # Ours+IRL(E): a variant with networks of its own
+        args = ["-m", "lab.ablations", *TINY_RUN, "--reward-learning", "entropy"]
+        args += ["--demos", demos, "--total-steps", "100000"]
+        return [*args, *LONG, "--run-dir", run_dir], "interactions"
     if kind == "gail":
-        args = ["baselines.py", "gail", *TINY_GAIL_FLAGS, "--demos", demos]
+        args = ["-m", "lab.baselines", "gail", *TINY_GAIL, "--demos", demos]
         return [*args, "--total-steps", "100000", *LONG, "--run-dir", run_dir], "interactions"
     if kind == "ars":  # rollouts in 2 worker processes; a line per iteration
-        args = ["expert.py", "train", "--env", PENDULUM, "--workers", "2", "--steps", "1e8"]
+        args = ["-m", "lab.ars", "--env", PENDULUM, "--workers", "2", "--steps", "1e8"]
         args += ["--eval-every", "1", "--checkpoint", run_dir / "checkpoint.npz"]
         return [*args, "--out", run_dir.parent / "x.npz"], "iteration"
-    args = ["expert.py", "train", "--env", PENDULUM, "--method", "sac", *TINY_FLAGS]
-    args += ["--steps", "100000", *LONG, "--run-dir", run_dir, "--out", run_dir.parent / "x.npz"]
-    return args, "env_steps"
+    args = ["-m", "lab.sac", *TINY_SAC, "--steps", "100000", *LONG]
+    return [*args, "--run-dir", run_dir, "--out", run_dir.parent / "x.npz"], "interactions"
 
 
-def checkpointed_interactions(run_dir: Path, counter: str) -> int:
+def checkpointed(run_dir: Path, counter: str) -> int:
     if counter == "iteration":
-        return expert.ARSState.load(run_dir / "checkpoint.npz").iteration
-    counters = nets.load_arrays(run_dir / "checkpoint.npz")["counters"]
+        from lab import ars
+
+        return ars.ARSState.load(run_dir / "checkpoint.npz").iteration
+    counters = harness.load_arrays(run_dir / "checkpoint.npz")["counters"]
     return json.loads(str(counters))[counter]
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
-@pytest.mark.parametrize("kind", ["learner", "gail", "sac", "ars"])
+@pytest.mark.parametrize("kind", ["learner", "ablation", "gail", "sac", "ars"])
 def test_a_signal_stops_the_run_at_its_next_checkpoint(tmp_path, hopper_demos, kind, signum):
     run_dir = tmp_path / "run"
+    run_dir.mkdir()  # ARS's checkpoint file lives in it
     command, counter = command_of(kind, run_dir, hopper_demos)
     process = subprocess.Popen(
         [sys.executable, *map(str, command)],
@@ -77,11 +88,11 @@ def test_a_signal_stops_the_run_at_its_next_checkpoint(tmp_path, hopper_demos, k
         _, stderr = process.communicate(timeout=60)
     finally:
         if process.poll() is None:  # it ignored the signal: the test fails, nothing is left
-            process.kill()
+            os.killpg(process.pid, signal.SIGKILL)
             process.wait()
 
     assert process.returncode == 130, stderr
     assert stderr.strip().splitlines()[-1] == "interrupted; continue with --resume"
-    assert checkpointed_interactions(run_dir, counter) > 0
+    assert checkpointed(run_dir, counter) > 0
     if kind == "ars":  # checkpointed at the signal, not only by the 10 s clock
-        assert checkpointed_interactions(run_dir, counter) >= int(last.split()[1])
+        assert checkpointed(run_dir, counter) >= int(last.split()[1])
