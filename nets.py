@@ -162,35 +162,6 @@ def js_divergence_grad(x: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------
-# The entropy of a Bernoulli distribution (the reward-learning ablation's objective 8).
-# ----------------------------------------------------------------------------------------
-
-
-def sigmoid_grad(x: np.ndarray) -> np.ndarray:
-    """d sigmoid(x)/dx = p(1 - p), from the logit: exp(log p + log(1-p)), never NaN."""
-    return np.exp(-softplus(-x) - softplus(x))
-
-
-def bernoulli_entropy(x: np.ndarray) -> np.ndarray:
-    """H(Bern(p)) = -p log p - (1-p) log(1-p) for p = sigmoid(x), element-wise, in nats.
-
-    From the logit: -log p = softplus(-x) and -log(1-p) = softplus(x), so
-    H = p softplus(-x) + (1-p) softplus(x), finite for any x (0 log 0 = 0 in the limit).
-    """
-    p = sigmoid(x)
-    return p * softplus(-x) + (1.0 - p) * softplus(x)
-
-
-def bernoulli_entropy_grad(x: np.ndarray) -> np.ndarray:
-    """dH(Bern(sigmoid(x)))/dx = -x p (1 - p).
-
-    Derivation. dH/dp = -log p - 1 + log(1-p) + 1 = -log(p / (1-p)) = -logit p = -x,
-    and dp/dx = p(1-p). So H rises towards x = 0 (p = 1/2, H = log 2) from either side.
-    """
-    return -x * sigmoid_grad(x)
-
-
-# ----------------------------------------------------------------------------------------
 # The multilayer perceptron.
 # ----------------------------------------------------------------------------------------
 

@@ -150,6 +150,35 @@ def fix_noise(learner: Learner, state_dim, action_dim, config, rng) -> None:
 
 
 # ----------------------------------------------------------------------------------------
+# The entropy of a Bernoulli distribution (Eq. 9), for Ours+IRL(E)'s objective (8).
+# ----------------------------------------------------------------------------------------
+
+
+def sigmoid_grad(x: np.ndarray) -> np.ndarray:
+    """d nets.sigmoid(x)/dx = p(1 - p), from the logit: exp(log p + log(1-p)), never NaN."""
+    return np.exp(-nets.softplus(-x) - nets.softplus(x))
+
+
+def bernoulli_entropy(x: np.ndarray) -> np.ndarray:
+    """H(Bern(p)) = -p log p - (1-p) log(1-p) for p = nets.sigmoid(x), element-wise, in nats.
+
+    From the logit: -log p = nets.softplus(-x) and -log(1-p) = nets.softplus(x), so
+    H = p nets.softplus(-x) + (1-p) nets.softplus(x), finite for any x (0 log 0 = 0 in the limit).
+    """
+    p = nets.sigmoid(x)
+    return p * nets.softplus(-x) + (1.0 - p) * nets.softplus(x)
+
+
+def bernoulli_entropy_grad(x: np.ndarray) -> np.ndarray:
+    """dH(Bern(nets.sigmoid(x)))/dx = -x p (1 - p).
+
+    Derivation. dH/dp = -log p - 1 + log(1-p) + 1 = -log(p / (1-p)) = -logit p = -x,
+    and dp/dx = p(1-p). So H rises towards x = 0 (p = 1/2, H = log 2) from either side.
+    """
+    return -x * sigmoid_grad(x)
+
+
+# ----------------------------------------------------------------------------------------
 # Ours+IRL(D) and Ours+IRL(E): a learned reward and the critic's objective (15).
 # ----------------------------------------------------------------------------------------
 
@@ -182,11 +211,11 @@ def reward_loss_and_grads(
             [-nets.sigmoid(-x_expert) / n_expert, nets.sigmoid(x_learner) / n_learner]
         )
     elif objective == "entropy":  # objective (8), with H of Eq. (9)
-        loss = -nets.sigmoid(x_expert).mean() - nets.bernoulli_entropy(x_learner).mean()
+        loss = -nets.sigmoid(x_expert).mean() - bernoulli_entropy(x_learner).mean()
         d_x = np.concatenate(
             [
-                -nets.sigmoid_grad(x_expert) / n_expert,
-                -nets.bernoulli_entropy_grad(x_learner) / n_learner,
+                -sigmoid_grad(x_expert) / n_expert,
+                -bernoulli_entropy_grad(x_learner) / n_learner,
             ]
         )
     else:

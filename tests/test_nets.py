@@ -31,6 +31,7 @@ from hypothesis import assume, given
 from hypothesis import strategies as st
 
 import nets
+from lab import ablations
 
 TOL = 1e-6  # finite differences in float64 with eps = 1e-6
 EXACT_TOL = 1e-12  # comparisons with a closed form: only rounding separates the two
@@ -507,9 +508,9 @@ def test_sigmoid_grad(x):
     of p ~ 1 (ulp / eps ~ 1e-10) dominates the finite difference's relative error."""
     x = np.array(x)
     p = nets.sigmoid(x)
-    assert_gradient_close(nets.sigmoid_grad(x), p * (1 - p), TOL, "sigmoid_grad/value")
+    assert_gradient_close(ablations.sigmoid_grad(x), p * (1 - p), TOL, "sigmoid_grad/value")
     numeric = numerical_derivative_elementwise(nets.sigmoid, x)
-    assert_gradient_close(nets.sigmoid_grad(x), numeric, TOL, "sigmoid_grad/fd")
+    assert_gradient_close(ablations.sigmoid_grad(x), numeric, TOL, "sigmoid_grad/fd")
 
 
 @given(x=st.lists(st.floats(-6.0, 6.0), min_size=1, max_size=8))
@@ -524,17 +525,17 @@ def test_bernoulli_entropy_and_its_gradient(x):
     p = nets.sigmoid(x)
     direct = -p * np.log(p) - (1 - p) * np.log1p(-p)
     assume(np.all(np.isfinite(direct)) and np.all(np.abs(x) > 0.01))
-    assert_gradient_close(nets.bernoulli_entropy(x), direct, TOL, "entropy/value", floor=1e-6)
-    assert np.all(nets.bernoulli_entropy(x) <= np.log(2.0) + 1e-15)
-    numeric = numerical_derivative_elementwise(nets.bernoulli_entropy, x)
-    assert_gradient_close(nets.bernoulli_entropy_grad(x), numeric, TOL, "entropy/fd")
+    assert_gradient_close(ablations.bernoulli_entropy(x), direct, TOL, "entropy/value", floor=1e-6)
+    assert np.all(ablations.bernoulli_entropy(x) <= np.log(2.0) + 1e-15)
+    numeric = numerical_derivative_elementwise(ablations.bernoulli_entropy, x)
+    assert_gradient_close(ablations.bernoulli_entropy_grad(x), numeric, TOL, "entropy/fd")
 
 
 def test_bernoulli_entropy_saturates_without_nan():
     x = np.array([-1000.0, -50.0, 0.0, 50.0, 1000.0])
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        h, g = nets.bernoulli_entropy(x), nets.bernoulli_entropy_grad(x)
+        h, g = ablations.bernoulli_entropy(x), ablations.bernoulli_entropy_grad(x)
     assert np.all(np.isfinite(h)) and np.all(np.isfinite(g))
     np.testing.assert_allclose(h[[0, 4]], 0.0, atol=1e-300)
     assert h[2] == pytest.approx(np.log(2.0))
@@ -693,7 +694,11 @@ def test_float32_elementwise_pieces():
         assert nets.head_backward(head, np.ones_like(x), out).dtype == np.float32
     assert nets.js_divergence(x, t).dtype == np.float32
     assert nets.js_divergence_grad(x, t).dtype == np.float32
-    for fn in (nets.sigmoid_grad, nets.bernoulli_entropy, nets.bernoulli_entropy_grad):
+    for fn in (
+        ablations.sigmoid_grad,
+        ablations.bernoulli_entropy,
+        ablations.bernoulli_entropy_grad,
+    ):
         assert fn(x).dtype == np.float32, fn.__name__
 
 
@@ -799,5 +804,5 @@ def test_checker_catches_entropy_gradient_without_its_sigmoid_factor(x):
     """dH/dp = -x taken for dH/dx (the chain rule's p(1-p) forgotten) is caught."""
     x = np.array(x)
     assume(np.all(np.abs(x) > 0.01))
-    numeric = numerical_derivative_elementwise(nets.bernoulli_entropy, x)
-    assert_separated(nets.bernoulli_entropy_grad(x), -x, numeric, "entropy_without_p(1-p)")
+    numeric = numerical_derivative_elementwise(ablations.bernoulli_entropy, x)
+    assert_separated(ablations.bernoulli_entropy_grad(x), -x, numeric, "entropy_without_p(1-p)")
