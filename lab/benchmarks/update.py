@@ -1,9 +1,11 @@
 """Time one full update (critic step, target update, policy step) at the paper's sizes.
 
-    python -m lab.benchmarks.update [--repeats 20] [--noise-samples 128] [--target-samples 8]
+    python -m lab.benchmarks.update [--task Hopper-v4] [--noise-samples 128] [--repeats 20]
+    python -m lab.benchmarks.update --table   # every paper task at 8 and 128 noise samples
 
-Hopper-v4 dimensions (dim S = 11, dim A = 3), PN 100-100, QN 500-500, minibatch 64,
-128 noise samples per state: 8 192 rows through the critic and back per policy step.
+A task's dimensions (Hopper-v4: dim S = 11, dim A = 3), PN 100-100, QN 500-500,
+minibatch 64, 128 noise samples per state: 8 192 rows through the critic and back per
+policy step. --table prints one Markdown row per task and noise setting.
 In the same run it times the GEMM floor: every matrix product of one update, at the
 update's shapes, each in NumPy with the faster of one BLAS thread or all cores, and no
 element-wise work at all. floor_fraction = floor / update is the share of the GEMM floor's speed
@@ -25,7 +27,15 @@ from threadpoolctl import threadpool_info, threadpool_limits
 import harness
 import offpac_il
 
-STATE_DIM, ACTION_DIM = 11, 3
+# (dim S, dim A) of the paper's tasks, as gymnasium's -v4 environments have them.
+TASK_DIMS = {
+    "Hopper-v4": (11, 3),
+    "HalfCheetah-v4": (17, 6),
+    "Walker2d-v4": (17, 6),
+    "Ant-v4": (27, 8),
+    "Humanoid-v4": (376, 17),
+}
+STATE_DIM, ACTION_DIM = TASK_DIMS["Hopper-v4"]  # set by main for --task
 
 
 def make_problem(config: offpac_il.Config, rng: np.random.Generator):
@@ -117,14 +127,8 @@ def median_seconds(fn, repeats: int, warmup: int = 3) -> float:
     return float(np.median(times))
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=20)
-    parser.add_argument("--noise-samples", type=int, default=128)
-    parser.add_argument("--target-samples", type=int, default=offpac_il.Config.target_samples)
-    args = parser.parse_args()
-    harness.reuse_freed_memory()  # as a training run does
-    config = offpac_il.Config(noise_samples=args.noise_samples, target_samples=args.target_samples)
+def measure(config: offpac_il.Config, repeats: int) -> dict:
+    """One update's median time, its page faults and peak memory, and its GEMM floor."""
     rng = np.random.default_rng(0)
     learner, replay, expert_buffer = make_problem(config, rng)
 
@@ -133,7 +137,7 @@ def main() -> None:
 
     # As in training: BLAS on one thread, parallelism from harness.map_row_chunks.
     with threadpool_limits(limits=1, user_api="blas"):
-        update_s = median_seconds(one_update, args.repeats)
+        update_s = median_seconds(one_update, repeats)
         faults_before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
         one_update()
         page_faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults_before
@@ -141,22 +145,52 @@ def main() -> None:
         one_update()
         peak_bytes = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
-    floor_s = time_gemm_floor(gemm_shapes(config), rng, args.repeats)
+    floor_s = time_gemm_floor(gemm_shapes(config), rng, repeats)
+    return {"update_s": update_s, "floor_s": floor_s, "faults": page_faults, "peak": peak_bytes}
 
+
+def main() -> None:
+    global STATE_DIM, ACTION_DIM
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", choices=sorted(TASK_DIMS), default="Hopper-v4")
+    parser.add_argument("--table", action="store_true", help="every task, 8 and 128 samples")
+    parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument("--noise-samples", type=int, default=128)
+    parser.add_argument("--target-samples", type=int, default=offpac_il.Config.target_samples)
+    args = parser.parse_args()
+    harness.reuse_freed_memory()  # as a training run does
     blas = [
         f"{i['internal_api']} {i.get('version')} ({i['num_threads']} threads)"
         for i in threadpool_info()
         if i["user_api"] == "blas"
     ]
     print(f"cores: {os.cpu_count()}  numpy {np.__version__}  BLAS: {', '.join(blas)}")
+    if args.table:
+        print("| task | dim S | dim A | noise samples | update (ms) | GEMM floor (ms) | fraction |")
+        print("|---|---:|---:|---:|---:|---:|---:|")
+        for task, (STATE_DIM, ACTION_DIM) in TASK_DIMS.items():
+            for samples in (8, 128):
+                config = offpac_il.Config(noise_samples=samples, target_samples=args.target_samples)
+                m = measure(config, args.repeats)
+                print(
+                    f"| {task} | {STATE_DIM} | {ACTION_DIM} | {samples} | {m['update_s'] * 1e3:.1f}"
+                    f" | {m['floor_s'] * 1e3:.1f} | {m['floor_s'] / m['update_s']:.2f} |",
+                    flush=True,
+                )
+        return
+    STATE_DIM, ACTION_DIM = TASK_DIMS[args.task]
+    config = offpac_il.Config(noise_samples=args.noise_samples, target_samples=args.target_samples)
+    m = measure(config, args.repeats)
+    update_s, floor_s = m["update_s"], m["floor_s"]
     print(
-        f"noise samples {config.noise_samples}, target samples {config.target_samples}, "
+        f"{args.task} (dim S {STATE_DIM}, dim A {ACTION_DIM}): noise samples "
+        f"{config.noise_samples}, target samples {config.target_samples}, "
         f"batch {config.batch_size}, critic {config.critic_hidden}"
     )
     print(f"update:      {update_s * 1e3:7.1f} ms (median of {args.repeats})")
     print(f"GEMM floor:  {floor_s * 1e3:7.1f} ms (the update's matrix products alone)")
-    print(f"peak memory: {peak_bytes / 2**20:7.1f} MiB allocated by one update")
-    print(f"page faults: {page_faults:7d} in one update (see harness.reuse_freed_memory)")
+    print(f"peak memory: {m['peak'] / 2**20:7.1f} MiB allocated by one update")
+    print(f"page faults: {m['faults']:7d} in one update (see harness.reuse_freed_memory)")
     print(
         f"update_ms={update_s * 1e3:.1f} gemm_floor_ms={floor_s * 1e3:.1f} "
         f"floor_fraction={floor_s / update_s:.3f}"
