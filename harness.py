@@ -8,8 +8,8 @@ A trainer writes its method; this module owns everything around it, once:
 - the run directory (`open_run_dir`): config.json, progress.csv, one atomic
   checkpoint.npz with the Generator's state, exact resume, and an exclusive lock so that
   two processes never write one run;
-- stopping at the next checkpoint on a signal, and the pace/ETA of a run;
-- `map_chunks`, the thread pool that runs a big pass's row chunks on both cores.
+- the progress rows, the wall clock and ETA, stopping at the next checkpoint on a signal;
+- `map_row_chunks`, the thread pool that runs a big pass's row chunks on both cores.
 """
 
 from __future__ import annotations
@@ -44,10 +44,7 @@ class UserError(Exception):
     """An error the user caused (bad flag, bad file, wrong environment): one line, exit 2."""
 
 
-# ----------------------------------------------------------------------------------------
-# Files, written atomically: a run killed mid-write keeps the previous file, never half
-# of a new one.
-# ----------------------------------------------------------------------------------------
+# === Files, written atomically: a killed run keeps the previous file, never half a new one ===
 
 
 def _write_atomically(path, write) -> None:
@@ -98,10 +95,7 @@ def load_arrays(path) -> dict[str, np.ndarray]:
         raise UserError(f"{path}: not a readable .npz file ({error})") from None
 
 
-# ----------------------------------------------------------------------------------------
-# The command line, made from a hyperparameter dataclass (the CleanRL convention: each
-# field's docstring is its help text).
-# ----------------------------------------------------------------------------------------
+# === The command line, made from a hyperparameter dataclass (docstrings are the help) ===
 
 
 def field_docstrings(cls) -> dict[str, str]:
@@ -262,9 +256,7 @@ def saved_config(config_class, saved: dict, paper: dict):
     )
 
 
-# ----------------------------------------------------------------------------------------
-# The run directory: config.json, progress.csv and checkpoint.npz, under a lock.
-# ----------------------------------------------------------------------------------------
+# === The run directory: config.json, progress.csv and checkpoint.npz, under a lock ===
 
 CONFIG, PROGRESS, CHECKPOINT, LOCK = "config.json", "progress.csv", "checkpoint.npz", ".lock"
 _held_locks: dict[Path, int] = {}
@@ -501,9 +493,7 @@ class Clock:
         return left * (time.perf_counter() - self.start) / done / 60
 
 
-# ----------------------------------------------------------------------------------------
-# Stopping a run at its next checkpoint.
-# ----------------------------------------------------------------------------------------
+# === Stopping a run at its next checkpoint ===
 
 _stop = threading.Event()
 
@@ -577,9 +567,7 @@ def run_cli(body: Callable[[], object]) -> int:
     return 0
 
 
-# ----------------------------------------------------------------------------------------
-# Process set-up for the big passes: row chunks on both cores, and malloc that reuses.
-# ----------------------------------------------------------------------------------------
+# === The big passes: row chunks on both cores, and malloc that reuses memory ===
 
 _POOL: ThreadPoolExecutor | None = None
 # Rows per chunk of the big passes. For the policy step's 8 192 rows on 2 cores: 167,
@@ -625,10 +613,7 @@ def reuse_freed_memory() -> None:
         pass
 
 
-# ----------------------------------------------------------------------------------------
-# Added for expert.py and lab/ (a helper's block; fold it in above as you see fit): one
-# main for every command, and count flags.
-# ----------------------------------------------------------------------------------------
+# === One main for every command, and count flags ===
 
 
 def cli_main(argv, parse: Callable, run: Callable, checkpoints: bool = True) -> int:
