@@ -10,10 +10,13 @@ Files:
     experts/<env>.npz    a shipped expert: M, mu, std (ARS) or a policy network (SAC),
                          action bounds, and a JSON ``metadata`` record of the training
                          commands, seed, env steps and wall time
-    experts/table.json   Table 1 for the -v4 tasks (measured by ``python -m lab.table``)
+    experts/table.json   Table 1 (measured by ``python -m lab.table``): the -v4 tasks, and the
+                         -v5 tasks a -v4 expert serves (SERVED_BY)
     demos/*.npz          demonstrations: ``observations``, ``actions`` (env units),
-                         ``next_observations``, ``terminals`` (is s' terminal), ``env_id``,
-                         ``returns`` (per trajectory), ``seed``, ``sampling``, ``trajectories``
+                         ``next_observations``, ``terminals`` (is s' terminal; also read as
+                         ``terminations``; none: all False), ``env_id``, ``returns`` (per
+                         trajectory), ``seed``, ``sampling``, ``trajectories``, ``source``,
+                         ``ref_min_score`` and ``ref_max_score`` (a dataset's reference returns)
 
 Subcommands (``python expert.py -h``): ``demos``, ``check-demos``, ``import-minari``.
 """
@@ -53,9 +56,7 @@ SAMPLING_MODES = ("sparse", "dense")
 ACTION_BOUND_TOLERANCE = 1e-4
 
 
-# ---------------------------------------------------------------------------------------------
-# Environments
-# ---------------------------------------------------------------------------------------------
+# === Environments ===
 
 
 @contextlib.contextmanager
@@ -122,9 +123,7 @@ def env_dimensions(env: gym.Env) -> tuple[int, int]:
     return env.observation_space.shape[0], env.action_space.shape[0]
 
 
-# ---------------------------------------------------------------------------------------------
-# The expert policy: a linear map of normalised states (ARS V2), or a SAC policy network
-# ---------------------------------------------------------------------------------------------
+# === The expert policy: a linear map of normalised states (ARS V2), or a SAC policy network ===
 
 ARS_LINEAR, SAC_MLP = "ars-linear", "sac-mlp"
 EXPERT_KINDS = (ARS_LINEAR, SAC_MLP)
@@ -189,17 +188,43 @@ class ExpertPolicy:
         )
 
 
+# gymnasium's -v5 tasks that a -v4 expert serves (see serving_expert_path).
+SERVED_BY = {f"{task}-v5": f"{task}-v4" for task in ("Hopper", "HalfCheetah", "Walker2d")}
+# -v5 tasks whose observations the -v4 experts cannot read.
+NOT_SERVED = {
+    "Ant-v5": "its 105-dim observations hold contact forces; the Ant-v4 expert reads 27 dims",
+    "Humanoid-v5": "its observations have 348 dims; the Humanoid-v4 expert reads 376",
+}
+
+
 def default_expert_path(env_id: str) -> Path:
-    """``<repo>/experts/<env_id>.npz``, found from this file, not from the working directory."""
+    """``<repo>/experts/<env_id>.npz`` (found from this file, not from the working
+    directory): where the expert trained for ``env_id`` is written."""
     return EXPERTS_DIR / f"{env_id}.npz"
 
 
+def serving_expert_path(env_id: str) -> Path:
+    """The expert file that serves ``env_id``: its own if one was trained, else, for the
+    -v5 tasks of SERVED_BY, the -v4 expert's. Why it may: on Hopper, HalfCheetah and
+    Walker2d, -v5 observations hold the same quantities in the same order as -v4 (11, 17
+    and 17 dims), and the -v4 experts earn the same returns on both versions (10 seeded
+    episodes, Table 1: 3395 on both, 4171 on both, 4362 on -v5 against 4346 on -v4). Not so
+    on Ant and Humanoid (NOT_SERVED), whose -v5 observations changed."""
+    own = default_expert_path(env_id)
+    return (
+        own if own.exists() or env_id not in SERVED_BY else default_expert_path(SERVED_BY[env_id])
+    )
+
+
 def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
-    """Load the shipped expert for ``env_id`` (or the one at ``path``), checking it fits the env.
+    """Load the expert that serves ``env_id`` (or the one at ``path``), checking it fits.
 
     Files without a ``kind`` are ARS linear policies (every file written before SAC).
     """
-    path = Path(path) if path is not None else default_expert_path(env_id)
+    path = Path(path) if path is not None else serving_expert_path(env_id)
+    if not path.exists() and env_id in NOT_SERVED:
+        why = f"no expert serves {env_id} yet: {NOT_SERVED[env_id]}"
+        raise UserError(f"{why}; give --demos (a file or minari:<dataset id>)")
     if not path.exists():
         raise UserError(
             f"no expert for {env_id} at {path}; train one with "
@@ -223,7 +248,7 @@ def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
                 policy.network = nets.MLP([int(n) for n in file["sizes"]], "identity", params)
     except (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile) as error:
         raise UserError(f"{path}: not a valid expert file ({error})") from None
-    if policy.env_id != env_id:
+    if policy.env_id not in (env_id, SERVED_BY.get(env_id)):
         raise UserError(f"{path}: expert was trained on {policy.env_id}, not {env_id}")
     if policy.network is None:
         dim_a, dim_s = policy.weights.shape
@@ -241,11 +266,18 @@ def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
     return policy
 
 
-# ---------------------------------------------------------------------------------------------
-# Demonstrations: (s, a, s') triplets of 1000-step expert trajectories (Sec. 5.1)
-# ---------------------------------------------------------------------------------------------
+# === Demonstrations: (s, a, s') triplets of 1000-step expert trajectories (Sec. 5.1) ===
 
-DEMO_ARRAY_KEYS = ("observations", "actions", "next_observations", "terminals")
+DEMO_ARRAY_KEYS = ("observations", "actions", "next_observations")  # and terminal flags
+# Other tools' names for the flags (D4RL: terminals, timeouts; Minari: terminations,
+# truncations); the first one present is read. A file without either terminal key holds the
+# paper's plain (s, a, s') triplets: no s' is terminal. A timeout (truncation) needs nothing
+# of the learner, which bootstraps through it as through any non-terminal s'; its array is
+# only checked. `rewards` are ignored: the method learns without them.
+TERMINAL_KEYS, TIMEOUT_KEYS = ("terminals", "terminations"), ("timeouts", "truncations")
+MINARI = "minari:"  # --demos minari:<dataset id>: a Minari dataset in the local cache
+ASSUMED = "; no terminal flags in the file: every s' taken as non-terminal"
+REFERENCE_KEYS = ("ref_min_score", "ref_max_score")  # a dataset's own reference returns
 
 
 @dataclass
@@ -262,9 +294,18 @@ class Demos:
     sampling: str | None = None
     trajectories: int | None = None
     path: Path | None = None
+    source: str | None = None  # where a converted file came from, e.g. minari:<dataset id>
+    terminals_assumed: bool = False  # the file had no terminal flags: all taken as False
+    reference_returns: tuple[float, float] | None = None  # (ref_min_score, ref_max_score)
 
     def __len__(self) -> int:
         return len(self.observations)
+
+    def describe(self) -> str:
+        """A run's first line about its demonstrations: where from, how many, what was assumed."""
+        source = f" from {self.source}" if self.source else ""
+        assumed = ASSUMED * self.terminals_assumed
+        return f"demonstrations: {self.path} ({len(self)} triplets{source}){assumed}"
 
 
 def default_demos_path(env_id: str, trajectories: int, sampling: str, seed: int) -> Path:
@@ -362,11 +403,9 @@ def kept_steps(steps: int, sampling: str, rng: np.random.Generator) -> np.ndarra
 
 def demo_arrays(chunks: list[tuple], env_id: str, returns, seed, sampling, **extra) -> dict:
     """A demonstration file's arrays from (s, a, s', terminal) chunks, one per trajectory."""
-    states, actions, next_states, terminals = map(np.concatenate, zip(*chunks, strict=True))
-    return dict(
-        observations=states.astype(np.float32),
-        actions=actions.astype(np.float32),
-        next_observations=next_states.astype(np.float32),
+    *triplets, terminals = map(np.concatenate, zip(*chunks, strict=True))
+    triplets = [array.astype(np.float32) for array in triplets]  # s, a, s'
+    return dict(zip(DEMO_ARRAY_KEYS, triplets, strict=True)) | dict(
         terminals=terminals.astype(bool),
         env_id=np.array(env_id),
         returns=np.array(returns),
@@ -421,11 +460,20 @@ def ensure_demos(
 
 def demo_path(settings, make: bool = True) -> Path:
     """The demonstrations a run's settings name (offpac_il.RunConfig's demos, env,
-    trajectories, sampling, demo_seed): the file `demos`, else the shipped expert's default
-    demonstrations, made the first time unless `make` is False."""
-    if settings.demos:
+    trajectories, sampling, demo_seed): the file `demos`; for `demos` minari:<dataset id>,
+    that many trajectories of the locally cached Minari dataset, subsampled as `sampling`
+    says, converted once to a file in demos/; else the shipped expert's default
+    demonstrations. Either is made the first time unless `make` is False."""
+    if settings.demos and not settings.demos.startswith(MINARI):
         return Path(settings.demos)
     default = (settings.env, settings.trajectories, settings.sampling, settings.demo_seed)
+    if settings.demos:
+        dataset_id = settings.demos.removeprefix(MINARI)
+        name = f"{settings.env}-minari-{dataset_id.replace('/', '-')}"
+        path = default_demos_path(name, *default[1:])
+        if make and not path.exists():
+            write_demos(path, import_minari(dataset_id, *default))
+        return path
     return ensure_demos(*default) if make else default_demos_path(*default)
 
 
@@ -438,14 +486,18 @@ def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
     missing = [key for key in DEMO_ARRAY_KEYS if key not in arrays]
     if missing:
         raise fail(f"missing key(s) {', '.join(missing)}")
+    terminal_key = next((key for key in TERMINAL_KEYS if key in arrays), None)
+    timeout_key = next((key for key in TIMEOUT_KEYS if key in arrays), None)
     recorded_env = str(arrays["env_id"]) if "env_id" in arrays else None
     if recorded_env is not None and recorded_env != env_id:
         raise fail(f"demonstrations are for {recorded_env}, not {env_id}")
     try:
         observations, actions, next_observations = (
-            np.asarray(arrays[key], dtype=np.float32) for key in DEMO_ARRAY_KEYS[:3]
+            np.asarray(arrays[key], dtype=np.float32) for key in DEMO_ARRAY_KEYS
         )
-        terminals = np.asarray(arrays["terminals"]).astype(bool)
+        flag_keys = [key for key in (terminal_key, timeout_key) if key]
+        flags = {key: np.asarray(arrays[key]).astype(bool) for key in flag_keys}
+        scores = [float(arrays[key]) for key in REFERENCE_KEYS if key in arrays]
     except (TypeError, ValueError) as error:
         raise fail(f"arrays are not numeric ({error})") from None
     with make_env(env_id) as env:
@@ -461,12 +513,10 @@ def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
             raise fail(f"{name} have shape {array.shape}; {env_id} needs (n, {dim})")
         if not np.all(np.isfinite(array)):
             raise fail(f"{name} contain non-finite values (NaN or inf)")
-    lengths = {len(observations), len(actions), len(next_observations), len(terminals)}
-    if len(lengths) != 1 or terminals.ndim != 1:
-        raise fail(
-            f"mismatched lengths: {len(observations)} observations, {len(actions)} "
-            f"actions, {len(next_observations)} next_observations, {len(terminals)} terminals"
-        )
+    n, columns = len(observations), {"actions": actions, "next_observations": next_observations}
+    for name, array in (columns | flags).items():
+        if array.shape[:1] != (n,) or (name in flags and array.ndim != 1):
+            raise fail(f"mismatched lengths: {n} observations, {name} of shape {array.shape}")
     tolerance = ACTION_BOUND_TOLERANCE * np.maximum(1.0, np.abs(np.stack([low, high])))
     if np.any(actions < low - tolerance[0]) or np.any(actions > high + tolerance[1]):
         raise fail(
@@ -476,8 +526,14 @@ def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
 
     recorded = (("returns", np.asarray), ("seed", int), ("sampling", str), ("trajectories", int))
     optional = {key: convert(arrays[key]) for key, convert in recorded if key in arrays}
+    optional |= {"source": str(arrays["source"])} if "source" in arrays else {}
+    if len(scores) == 2:
+        if not (np.all(np.isfinite(scores)) and scores[0] < scores[1]):
+            raise fail(f"ref_min_score {scores[0]} and ref_max_score {scores[1]} are not ordered")
+        optional |= {"reference_returns": tuple(scores)}
+    terminals = flags[terminal_key] if terminal_key else np.zeros(n, bool)
     triplets = (observations, actions, next_observations, terminals)
-    return Demos(*triplets, env_id=recorded_env, path=path, **optional)
+    return Demos(*triplets, recorded_env, path=path, terminals_assumed=not terminal_key, **optional)
 
 
 def load_demos(path: Path, env_id: str) -> Demos:
@@ -499,7 +555,9 @@ def import_minari(
 
     Minari stores each episode as observations (T+1, dim S), actions (T, dim A) and
     terminations (T,); the triplets are (obs[t], act[t], obs[t+1]) with terminal = terminations[t].
-    Episodes of any length are kept (the file's returns record how good they were).
+    Episodes of any length are kept (the file's returns record how good they were), the
+    first `trajectories` of them. The dataset's reference returns (ref_min_score and
+    ref_max_score of its metadata), where it has them, go into the file under those names.
     """
     try:
         import minari
@@ -516,6 +574,11 @@ def import_minari(
             f"(MINARI_DATASETS_PATH={os.environ.get('MINARI_DATASETS_PATH', '~')}): "
             f"{error}"
         ) from None
+    recorded_on = getattr(dataset.env_spec, "id", env_id)
+    if recorded_on != env_id:
+        raise UserError(
+            f"Minari dataset {dataset_id!r} was recorded on {recorded_on}, not {env_id}"
+        )
     rng = np.random.default_rng(seed)
     chunks, returns = [], []
     for episode in dataset.iterate_episodes():
@@ -529,16 +592,18 @@ def import_minari(
         terminals = np.asarray(episode.terminations, dtype=bool)
         chunks.append(tuple(a[keep] for a in (*triplet, terminals)))
         returns.append(float(np.sum(episode.rewards)))
-    if not returns:
-        raise UserError(f"Minari dataset {dataset_id!r} has no episodes")
+    if len(returns) < (trajectories or 1):
+        raise UserError(
+            f"Minari dataset {dataset_id!r} has fewer than {trajectories or 1} episodes"
+        )
+    metadata = dataset.storage.metadata
+    scores = {k: np.array(metadata[k]) for k in REFERENCE_KEYS if metadata.get(k) is not None}
     return demo_arrays(
-        chunks, env_id, returns, seed, sampling, source=np.array(f"minari:{dataset_id}")
+        chunks, env_id, returns, seed, sampling, source=np.array(f"{MINARI}{dataset_id}"), **scores
     )
 
 
-# ---------------------------------------------------------------------------------------------
-# Reference returns (Table 1, measured by lab/table.py): the normalised score's two ends
-# ---------------------------------------------------------------------------------------------
+# === Reference returns (Table 1, measured by lab/table.py): the normalised score's two ends ===
 
 
 def reference_returns(env_id: str, table_path: Path = TABLE_PATH) -> tuple[float, float]:
@@ -558,12 +623,17 @@ def reference_returns(env_id: str, table_path: Path = TABLE_PATH) -> tuple[float
     return float(row["random_mean"]), float(row["expert_mean"])
 
 
-def references_or_nan(env_id: str) -> tuple[float, float]:
-    """reference_returns, or (NaN, NaN) with a note: any Box task can be learned, a task
-    without an expert just has no normalised score."""
+def references_or_nan(env_id: str, demos: Demos | None = None) -> tuple[float, float]:
+    """reference_returns; for a task without a Table 1 row, the reference returns that the
+    demonstrations carry (a Minari dataset's), with a note; else (NaN, NaN) with a note: any
+    Box task can be learned, a task without an expert just has no normalised score."""
     try:
         return reference_returns(env_id)
     except UserError as missing:
+        if demos is not None and demos.reference_returns is not None:
+            source = demos.source or demos.path
+            print(f"note: normalised score from {source}'s reference returns", flush=True)
+            return demos.reference_returns
         print(f"note: no normalised score ({missing})", flush=True)
         return math.nan, math.nan
 
@@ -574,15 +644,26 @@ def normalized_score(value: float, references: tuple[float, float]) -> float:
     return (value - random_return) / (expert_return - random_return)
 
 
-# ---------------------------------------------------------------------------------------------
-# Command line: python expert.py {demos,import-minari,check-demos}
-# ---------------------------------------------------------------------------------------------
+# === Command line: python expert.py {demos,import-minari,check-demos} ===
+
+
+def writable_out(path, force: bool) -> Path:
+    """--out, checked before any work: a file name under directories, and an existing file
+    only with --force (demonstrations are not replaced without a word)."""
+    path = Path(path)
+    if path.is_dir():
+        raise UserError(f"--out {path} is a directory; give a file name")
+    if any(parent.exists() and not parent.is_dir() for parent in path.parents):
+        raise UserError(f"--out {path} lies under a file")
+    if path.exists() and not force:
+        raise UserError(f"--out {path} exists; give --force to replace it")
+    return path
 
 
 def cli_demos(args) -> None:
-    expert = load_expert(args.env, Path(args.expert)) if args.expert else None
     default = default_demos_path(args.env, args.trajectories, args.sampling, args.seed)
-    out = Path(args.out) if args.out else default
+    out = writable_out(args.out or default, args.force)
+    expert = load_expert(args.env, Path(args.expert)) if args.expert else None
     demos = make_demos(args.env, args.trajectories, args.sampling, args.seed, expert=expert)
     write_demos(out, demos)
     print(
@@ -594,8 +675,9 @@ def cli_demos(args) -> None:
 
 
 def cli_import_minari(args) -> None:
+    out = writable_out(args.out, args.force)
     demos = import_minari(args.dataset_id, args.env, args.trajectories, args.sampling, args.seed)
-    write_demos(Path(args.out), demos)
+    write_demos(out, demos)
     print(
         f"{args.out}: {len(demos['observations'])} triplets from {len(demos['returns'])} "
         f"episodes of {args.dataset_id}"
@@ -604,12 +686,12 @@ def cli_import_minari(args) -> None:
 
 def cli_check_demos(args) -> None:
     demos = load_demos(Path(args.file), args.env)
-    r = demos.returns
+    r, assumed = demos.returns, ASSUMED * demos.terminals_assumed
     returns = "unknown" if r is None else f"{r.mean():.1f} ± {r.std():.1f}"
     print(
         f"{args.file}: {len(demos)} valid triplets for {args.env} "
         f"({demos.sampling or 'unknown'} sampling, {demos.trajectories or '?'} trajectories, "
-        f"expert return {returns}, {int(demos.terminals.sum())} terminal)"
+        f"expert return {returns}, {int(demos.terminals.sum())} terminal){assumed}"
     )
 
 
@@ -630,6 +712,7 @@ def parse(argv: list[str]) -> argparse.Namespace:
     demos.add_argument("--seed", type=int, default=0)
     demos.add_argument("--expert", help="expert file (default: experts/<env>.npz)")
     demos.add_argument("--out", help="default: demos/<env>-<sampling>-<n>traj-seed<seed>.npz")
+    demos.add_argument("--force", action="store_true", help="replace an existing --out file")
     demos.set_defaults(handler=cli_demos)
 
     minari = commands.add_parser(
@@ -641,6 +724,7 @@ def parse(argv: list[str]) -> argparse.Namespace:
     minari.add_argument("--trajectories", type=count, help="the first N episodes (default: all)")
     minari.add_argument("--sampling", choices=SAMPLING_MODES, default="dense")
     minari.add_argument("--seed", type=int, default=0)
+    minari.add_argument("--force", action="store_true", help="replace an existing --out file")
     minari.set_defaults(handler=cli_import_minari)
 
     check = commands.add_parser("check-demos", help="validate a demonstration file")

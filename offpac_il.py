@@ -47,7 +47,8 @@ class RunConfig:
     seed: int = 0
     """Seed of the run's single numpy Generator and of the environment."""
     demos: str = ""
-    """Demonstration file (.npz); empty: the shipped expert's default demonstrations."""
+    """Demonstrations: a .npz file, or minari:<dataset id> (in the local cache); empty: the
+    shipped expert's default ones. --trajectories, --sampling, --demo-seed apply to both."""
     trajectories: int = 4
     """Expert trajectories in the default demonstrations (Sec. 5.1)."""
     sampling: str = "sparse"
@@ -674,8 +675,7 @@ TERMINATIONS = ("bootstrap", "absorbing", "zero")
 def prepare(config: Config, env, rng: np.random.Generator, variant: Variant = OURS):
     """The demonstrations (B_pi_E), the spaces, a fresh learner and an empty B_beta.
     The networks are drawn from `rng` in a fixed order: PN, QN, then a variant's extras."""
-    demo_path = expert.demo_path(config)
-    demos = expert.load_demos(demo_path, config.env)
+    demos = expert.load_demos(expert.demo_path(config), config.env)
     spaces = make_spaces(env, demos, config)
     expert_buffer = expert_buffer_from(demos, spaces)
     state_dim, action_dim = expert_buffer.states.shape[1], expert_buffer.actions.shape[1]
@@ -685,7 +685,7 @@ def prepare(config: Config, env, rng: np.random.Generator, variant: Variant = OU
     learner = Learner.create(policy, state_dim, action_dim, config, rng)
     variant.make_extras(learner, state_dim, action_dim, config, rng)
     replay = ReplayBuffer(config.replay_size, state_dim, action_dim)
-    return spaces, expert_buffer, learner, replay, demo_path
+    return spaces, expert_buffer, learner, replay, demos
 
 
 def load_checkpoint(run_dir, learner: Learner, replay: ReplayBuffer, rng) -> harness.Progress:
@@ -711,10 +711,10 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
     """Algorithm 1, with evaluation, logging and checkpoints around it."""
     check_config(config)
     env, eval_env = expert.make_env(config.env), expert.make_env(config.env)
-    references = expert.references_or_nan(config.env)
     rng = np.random.default_rng(config.seed)  # the run's one Generator, passed explicitly
-    spaces, expert_buffer, learner, replay, demo_path = prepare(config, env, rng, variant)
-    print(f"demonstrations: {demo_path} ({len(expert_buffer.states)} triplets)", flush=True)
+    spaces, expert_buffer, learner, replay, demos = prepare(config, env, rng, variant)
+    print(demos.describe(), flush=True)
+    references = expert.references_or_nan(config.env, demos)
     run_dir = harness.open_run_dir(config.run_dir or f"runs/{config.env}-seed{config.seed}", resume)
     progress = load_checkpoint(run_dir, learner, replay, rng) if resume else harness.Progress()
     harness.write_config(run_dir, dataclasses.asdict(config))  # a resume may change the budget

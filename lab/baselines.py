@@ -543,8 +543,9 @@ class Run:
         method = method_of(config)
         run_dir = Path(config.run_dir or f"runs/{method}-{config.env}-seed{config.seed}")
         env = expert.make_env(config.env)
-        random_return, expert_return = expert.references_or_nan(config.env)
         demos = expert.load_demos(expert.demo_path(config), config.env)
+        print(demos.describe(), flush=True)
+        random_return, expert_return = expert.references_or_nan(config.env, demos)
         # The learner's own state standardisation and action scaling (absorbing: never).
         learner_spaces = offpac_il.make_spaces(
             env, demos, offpac_il.Config(standardize=config.standardize, termination="zero")

@@ -412,9 +412,12 @@ def _slug(name: str) -> str:
 
 
 def envs_with_experts(table_path=ROOT / "experts" / "table.json") -> list[str]:
-    """Tasks of Table 1 whose expert exists (the only ones with a normalised score)."""
+    """The paper's tasks (-v4) whose expert exists (the only ones with a normalised score);
+    Table 1's -v5 rows serve runs on those tasks, not the figures."""
+    from lab.table import PAPER_TASKS
+
     table = json.loads(Path(table_path).read_text())
-    return [env for env, row in table.items() if row.get("expert_mean") is not None]
+    return [env for env in PAPER_TASKS if (table.get(env) or {}).get("expert_mean") is not None]
 
 
 def plan(quick: bool, root) -> list[RunSpec]:
@@ -559,6 +562,18 @@ def read_progress(run_dir) -> dict[str, np.ndarray]:
         key: np.array([float(r[key]) if r[key] not in ("", None) else np.nan for r in rows])
         for key in rows[0]
     }
+
+
+def need_columns(progress: dict[str, np.ndarray], run_dir, *columns: str) -> None:
+    """Refuse a progress.csv without the columns a table or a figure reads, such as an
+    expert trainer's (lab/sac.py, lab/ars.py), which has no normalized_score."""
+    missing = [column for column in columns if column not in progress]
+    if missing:
+        what = "no rows" if not progress else f"no column {', '.join(missing)}"
+        raise UserError(
+            f"{Path(run_dir) / 'progress.csv'} has {what}; give runs of offpac_il.py, "
+            f"lab/ablations.py or lab/baselines.py"
+        )
 
 
 def read_config(run_dir) -> dict:
@@ -1053,6 +1068,7 @@ def hold_table(
                 "normalized_score": progress["average_score"],
                 "eval_falls": progress["average_falls"],
             }
+        need_columns(progress, run_dir, "interactions", "normalized_score")
         h = hold_stats(progress, reach, floor, since, until, episodes)
         first = "never" if np.isnan(h["first_reach"]) else f"{h['first_reach'] / 1000:.1f} k"
         fell = f"{h['falls_after']} of {h['fall_episodes']}" if h["fall_episodes"] else "-"
@@ -1093,6 +1109,9 @@ def plot_curves(
     fig, ax = plt.subplots(figsize=(8, 4 + 0.22 * len(groups)))
     for label, run_dirs in groups.items():
         runs = [read_progress(d) for d in run_dirs]
+        for run_dir, run in zip(run_dirs, runs, strict=True):
+            if run:  # a run without evaluations yet draws nothing
+                need_columns(run, run_dir, x, y)
         if x_max is not None:
             runs = [{k: v[r[x] <= x_max] for k, v in r.items()} if r else r for r in runs]
         runs = [r for r in runs if r and len(r[x])]
@@ -1314,8 +1333,8 @@ def policy_player(run_dir):
     config = learner_config({**saved, "run_dir": str(run_dir)})
     env = expert.make_env(config.env)
     rng = np.random.default_rng(config.seed)
-    spaces, _, learner, _, _ = offpac_il.prepare(config, env, rng, ablations.variant_of(config))
-    references = expert.references_or_nan(config.env)
+    spaces, _, learner, _, demos = offpac_il.prepare(config, env, rng, ablations.variant_of(config))
+    references = expert.references_or_nan(config.env, demos)
 
     def play(policy: Path | dict, episodes: int, seed: int) -> list[dict]:
         """policy: a policy file, or the arrays it holds."""
@@ -1592,6 +1611,12 @@ def run_command(argv) -> int:
         return 0
     runs_root = args.runs or DEFAULT_RUNS[args.mode]
     if args.command == "figures":
+        for root in args.runs or [runs_root]:  # a typo must not draw nothing, silently
+            where = f"--runs {root}" if args.runs else f"{root} (the default --runs)"
+            if not resolve(root).is_dir():
+                raise UserError(f"{where}: no such directory")
+            if not any(resolve(root).rglob("progress.csv")):
+                raise UserError(f"{where} holds no runs (no progress.csv under it)")
         names = ("figure4",) if args.mode == "ablations" else tuple(FIGURES)
         out = args.out or DEFAULT_FIGURES[args.mode]
         for name, path in draw_figures(runs_root, out, names).items():

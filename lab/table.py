@@ -1,9 +1,11 @@
 """Table 1 of the paper, measured: per task dim S, dim A, and the returns of a uniformly
 random policy and of the shipped expert, the two ends of the normalised score.
 
-`python -m lab.table` measures the paper's five -v4 tasks over 10 seeded episodes (reset
-seeds 0..9), writes experts/table.json (which expert.reference_returns reads) and prints
-the table in Markdown; `--episodes`, `--seed` and `--out` change that.
+`python -m lab.table` measures the paper's five -v4 tasks and the three -v5 tasks that a
+-v4 expert serves over 10 seeded episodes (reset seeds 0..9), writes experts/table.json
+(which expert.reference_returns reads) and prints the table in Markdown; `--episodes`,
+`--seed` and `--out` change that. `--tasks` measures only some rows: the rows of the other
+tasks already in `--out` are kept as they are.
 """
 
 from __future__ import annotations
@@ -21,6 +23,8 @@ import harness
 
 # The paper's five tasks, on the MuJoCo versions gymnasium still ships (-v1 is long gone).
 PAPER_TASKS = ("Hopper-v4", "HalfCheetah-v4", "Walker2d-v4", "Ant-v4", "Humanoid-v4")
+# gymnasium's -v5 versions of them that a -v4 expert serves (expert.SERVED_BY).
+TABLE_TASKS = PAPER_TASKS + tuple(expert.SERVED_BY)
 
 
 def run_episode(env: gym.Env, policy_fn: Callable, seed: int) -> tuple[float, int]:
@@ -96,10 +100,13 @@ def measure_table(
             expert_std=None,
             measured_with=numeric_platform(),
         )
-        if expert.default_expert_path(env_id).exists():
-            expert_returns = evaluate(env_id, expert.load_expert(env_id).act, episodes, seed)
+        if expert.serving_expert_path(env_id).exists():
+            policy = expert.load_expert(env_id)
+            expert_returns = evaluate(env_id, policy.act, episodes, seed)
             row.update(expert_mean=float(expert_returns.mean()))
             row.update(expert_std=float(expert_returns.std()))
+            if policy.env_id != env_id:
+                row.update(expert_trained_on=policy.env_id)
         log(f"{env_id}: random {row['random_mean']:.2f}, expert {row['expert_mean']}")
         table[env_id] = row
     return table
@@ -122,17 +129,35 @@ def table_markdown(table: dict) -> str:
 
 def parse(argv: list[str]):
     parser = harness.CommandLineParser(
-        prog="python -m lab.table", description="Measure Table 1 for the -v4 tasks."
+        prog="python -m lab.table", description="Measure Table 1 for the paper's tasks."
     )
     parser.add_argument("--episodes", type=harness.positive_int, default=10)
+    parser.add_argument(
+        "--tasks",
+        nargs="+",
+        default=list(TABLE_TASKS),
+        help="only these rows; the other rows of --out are kept (default: every row)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i")
     parser.add_argument("--out", default=str(expert.TABLE_PATH))
     return parser.parse_args(argv)
 
 
 def run(args, argv) -> None:
-    table = measure_table(args.episodes, args.seed, log=lambda line: print(line, flush=True))
-    harness.write_text(Path(args.out), json.dumps(table, indent=2) + "\n")
+    out = Path(args.out)
+    for env_id in args.tasks:  # a wrong task stops here, before hours of measuring
+        expert.make_env(env_id).close()
+    kept = {}
+    if out.is_file():
+        try:
+            kept = json.loads(out.read_text())
+        except (OSError, ValueError) as error:
+            raise harness.UserError(f"{out}: not a valid table ({error})") from None
+    measured = measure_table(
+        args.episodes, args.seed, args.tasks, log=lambda line: print(line, flush=True)
+    )
+    table = kept | measured
+    harness.write_text(out, json.dumps(table, indent=2) + "\n")
     print(f"wrote {args.out}\n\n{table_markdown(table)}")
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from gradcheck import assert_gradient_close, numerical_gradient
-from helpers import interrupted_after, read_rows, run_module
+from helpers import assert_one_line_error, interrupted_after, read_rows, run_module
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
@@ -565,6 +565,24 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0]
     assert not (tmp_path / "r").exists()
+
+
+def test_bc_run_dir_that_is_a_file_is_refused(tmp_path, hopper_demos):
+    taken = tmp_path / "taken"
+    taken.write_text("someone's file")
+    result = run_cli(*TINY_BC, "--demos", hopper_demos, "--run-dir", taken, check=False)
+    assert_one_line_error(result, f"--run-dir {taken} is a file")
+    assert taken.read_text() == "someone's file"
+
+
+def test_bc_on_plain_triplets_says_every_s_prime_is_taken_as_non_terminal(tmp_path, hopper_demos):
+    with np.load(hopper_demos) as file:
+        triplets = {k: file[k] for k in ("observations", "actions", "next_observations")}
+    np.savez(tmp_path / "triplets.npz", **triplets)
+    args = (*TINY_BC, "--total-steps", "20", "--demos", tmp_path / "triplets.npz")
+    result = run_cli(*args, "--run-dir", tmp_path / "run")
+    first = result.stdout.splitlines()[:3]
+    assert any("100 triplets" in line and "non-terminal" in line for line in first), first
 
 
 def test_resuming_with_the_wrong_method_is_refused(bc_run):

@@ -17,6 +17,7 @@ import pytest
 
 from lab import experiments
 from lab.experiments import ROOT, RunSpec
+from lab.table import PAPER_TASKS
 
 TINY = experiments.QUICK_ARGS["offpac_il.py"]
 
@@ -194,6 +195,8 @@ def test_plan_covers_the_figures_once_each():
     assert all("--total-steps" not in s.args for s in full)  # the scripts' own defaults
     assert {s.labels["trajectories"] for s in full} == {1, 4, 7, 10}
     assert {s.labels["seed"] for s in full} == {0, 1, 2}
+    # The paper's five tasks, every one with its expert; Table 1's -v5 rows are not in it.
+    assert {s.labels["env"] for s in full} == set(PAPER_TASKS)
 
 
 def test_select_keeps_a_part_of_the_plan_and_what_it_starts_from():
@@ -570,6 +573,8 @@ def test_hold_command_prints_one_row_per_run(tmp_path, capsys):
         (["gradient-noise", "{run}", "--draws", "1"], "--draws"),
         (["probe", "{run}", "--steps", "0"], "--steps"),
         (["figures", "sideways"], "invalid choice"),
+        (["figures", "quick", "--runs", "{absent}"], "no such directory"),
+        (["figures", "quick", "--runs", "{tmp}/run"], "holds no runs"),
         (["sweep", "ablations", "--envs", "Hopper-v4", "Ant-v4"], "on one task"),
         (["evaluate", "{absent}"], "config.json missing"),
         (["evaluate", "{run}"], "policy_final.npz does not exist"),
@@ -592,6 +597,20 @@ def test_bad_command_lines_end_in_one_line_and_status_2(tmp_path, capsys, argv, 
     assert stop.value.code == 2
     err = capsys.readouterr().err
     assert says in err and err.count("\n") == 1
+
+
+def test_tables_and_curves_refuse_a_progress_csv_without_the_score(tmp_path, capsys):
+    """An expert trainer's run (lab/sac.py's columns) given to hold or curves."""
+    sac = tmp_path / "sac"
+    sac.mkdir()
+    (sac / "config.json").write_text('{"env": "Walker2d-v4"}')
+    (sac / "progress.csv").write_text("env_steps,eval_return_mean\n5000,310.5\n10000,420.0\n")
+    for argv in (["hold", str(sac)], ["curves", str(tmp_path / "c.png"), str(sac)]):
+        assert experiments.main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"{sac / 'progress.csv'} has no column" in err
+        assert "normalized_score" in err
+    assert not (tmp_path / "c.png").exists()
 
 
 def test_ablation_plan_runs_every_ablation_at_its_budget_seed_by_seed():

@@ -213,6 +213,53 @@ def test_load_demos_accepts_files_without_env_id(demo_file):
     assert len(expert.load_demos(rewrite(demo_file, env_id=None), PENDULUM)) == 200
 
 
+# --- demonstrations as people have them: plain triplets, D4RL's and Minari's names ------------
+
+
+def test_plain_triplets_are_accepted_with_no_terminal_and_the_run_is_told(demo_file):
+    triplets = rewrite(demo_file, terminals=None)
+    demos = expert.load_demos(triplets, PENDULUM)
+    assert len(demos) == 200 and demos.terminals.dtype == bool and not demos.terminals.any()
+    assert demos.terminals_assumed and "every s' taken as non-terminal" in demos.describe()
+    assert str(triplets) in demos.describe() and "200 triplets" in demos.describe()
+    assert not expert.load_demos(demo_file, PENDULUM).terminals_assumed
+    assert "non-terminal" not in expert.load_demos(demo_file, PENDULUM).describe()
+    result = run_cli("check-demos", str(triplets), "--env", PENDULUM)
+    assert result.returncode == 0 and "every s' taken as non-terminal" in result.stdout
+
+
+@pytest.mark.parametrize(
+    "terminal_key, timeout_key", [("terminals", "timeouts"), ("terminations", "truncations")]
+)
+def test_d4rl_and_minari_key_names_are_read(demo_file, terminal_key, timeout_key):
+    flags = np.zeros(200, bool)
+    flags[[99, 199]] = True
+    named = {terminal_key: flags, timeout_key: ~flags, "rewards": np.ones(200, np.float32)}
+    demos = expert.load_demos(rewrite(demo_file, **{"terminals": None} | named), PENDULUM)
+    np.testing.assert_array_equal(demos.terminals, flags)  # the timeouts are no terminals
+    assert not demos.terminals_assumed
+    short = rewrite(demo_file, **{"terminals": None} | named | {timeout_key: np.zeros(7, bool)})
+    with pytest.raises(UserError, match=f"mismatched lengths.*{timeout_key}"):
+        expert.load_demos(short, PENDULUM)
+
+
+def test_reference_returns_in_a_file_serve_a_task_without_table_row(demo_file, capsys):
+    scored = rewrite(demo_file, ref_min_score=np.array(5.0), ref_max_score=np.array(1000.0))
+    demos = expert.load_demos(scored, PENDULUM)
+    assert demos.reference_returns == (5.0, 1000.0)
+    assert expert.references_or_nan(PENDULUM, demos) == (5.0, 1000.0)
+    assert "reference returns" in capsys.readouterr().out
+    assert np.isnan(
+        expert.references_or_nan(PENDULUM, expert.load_demos(demo_file, PENDULUM))
+    ).all()
+    assert "no normalised score" in capsys.readouterr().out
+    # A task with a Table 1 row keeps its own reference returns.
+    assert expert.references_or_nan("Hopper-v4", demos) == expert.reference_returns("Hopper-v4")
+    backwards = rewrite(demo_file, ref_min_score=np.array(9.0), ref_max_score=np.array(1.0))
+    with pytest.raises(UserError, match="ref_min_score"):
+        expert.load_demos(backwards, PENDULUM)
+
+
 # --- environments and the command line ---------------------------------------------------------
 
 
@@ -266,6 +313,36 @@ def test_cli_has_no_training_commands():
     assert "table" not in result.stdout  # measuring Table 1 is lab/table.py's
 
 
+@pytest.fixture
+def pendulum_expert_file(tmp_path, pendulum_expert) -> Path:
+    path = tmp_path / "pendulum-expert.npz"
+    pendulum_expert.save(path)
+    return path
+
+
+def test_cli_demos_out_is_checked_before_the_rollouts(tmp_path, pendulum_expert_file, capsys):
+    demos = ["demos", "--env", PENDULUM, "--expert", str(pendulum_expert_file), "--out"]
+    (tmp_path / "a-file").write_text("mine")
+    for out, says in (
+        (tmp_path, "is a directory"),
+        (tmp_path / "a-file" / "d.npz", "under a file"),
+    ):
+        assert expert.main([*demos, str(out)]) == 2
+        error = capsys.readouterr().err
+        assert error.count("\n") == 1 and f"--out {out} " in error and says in error
+    # An existing file is replaced only with --force.
+    out = tmp_path / "d.npz"
+    out.write_bytes(b"someone's file")
+    assert expert.main([*demos, str(out), "--trajectories", "1"]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "exists; give --force" in error
+    assert out.read_bytes() == b"someone's file"
+    assert expert.main([*demos, str(out), "--trajectories", "1", "--force"]) == 0
+    assert len(expert.load_demos(out, PENDULUM)) == 100
+    minari = ["import-minari", "test/any-v0", "--env", PENDULUM, "--out", str(out)]
+    assert expert.main(minari) == 2 and "exists; give --force" in capsys.readouterr().err
+
+
 def test_cli_bad_flag_is_one_line_and_exit_2(capsys):
     assert expert.main(["demos", "--env", PENDULUM, "--trajectories", "0"]) == 2
     error = capsys.readouterr().err
@@ -275,20 +352,23 @@ def test_cli_bad_flag_is_one_line_and_exit_2(capsys):
 # --- Minari import -----------------------------------------------------------------------------
 
 
-def test_minari_import_round_trip(tmp_path, monkeypatch, pendulum_expert):
+def make_minari_dataset(
+    dataset_id, controller, episodes=((20, 1.0), (15, 1.0), (40, 0.0)), **scores
+):
+    """A Minari dataset (minari 0.5 API) in MINARI_DATASETS_PATH, of real InvertedPendulum-v4
+    episodes of the given (steps, controller gain); a gain 0 episode falls (terminal s').
+    Returns the episodes."""
     minari = pytest.importorskip("minari")
     pytest.importorskip("h5py")
     from minari.data_collector import EpisodeBuffer
 
-    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))
-    # Three short episodes of a real environment; the last one ends in a fall (terminal s').
     env = expert.make_env(PENDULUM)
-    episodes = []
-    for episode, (steps, weights) in enumerate([(20, 1.0), (15, 1.0), (40, 0.0)]):
+    buffers = []
+    for episode, (steps, gain) in enumerate(episodes):
         observation, _ = env.reset(seed=episode)
         observations, actions, rewards, terminations, truncations = [observation], [], [], [], []
         for t in range(steps):
-            action = np.clip(weights * pendulum_expert.act(observation), -3, 3).astype(np.float32)
+            action = np.clip(gain * controller.act(observation), -3, 3).astype(np.float32)
             observation, reward, terminated, _, _ = env.step(action)
             observations.append(observation)
             actions.append(action)
@@ -297,7 +377,7 @@ def test_minari_import_round_trip(tmp_path, monkeypatch, pendulum_expert):
             truncations.append(not terminated and t == steps - 1)
             if terminated:
                 break
-        episodes.append(
+        buffers.append(
             EpisodeBuffer(
                 id=episode,
                 seed=episode,
@@ -310,8 +390,8 @@ def test_minari_import_round_trip(tmp_path, monkeypatch, pendulum_expert):
             )
         )
     minari.create_dataset_from_buffers(
-        "test/pendulum/tiny-v0",
-        episodes,
+        dataset_id,
+        buffers,
         env=env,
         algorithm_name="hand-made",
         author="tests",
@@ -319,9 +399,16 @@ def test_minari_import_round_trip(tmp_path, monkeypatch, pendulum_expert):
         code_permalink="-",
         eval_env=PENDULUM,
         description="test episodes",
+        **scores,
     )
     env.close()
+    return buffers
 
+
+def test_minari_import_round_trip(tmp_path, monkeypatch, pendulum_expert):
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))
+    # Three short episodes of a real environment; the last one ends in a fall (terminal s').
+    episodes = make_minari_dataset("test/pendulum/tiny-v0", pendulum_expert)
     out = tmp_path / "imported.npz"
     result = expert.main(
         ["import-minari", "test/pendulum/tiny-v0", "--env", PENDULUM, "--out", str(out)]
@@ -336,24 +423,76 @@ def test_minari_import_round_trip(tmp_path, monkeypatch, pendulum_expert):
     )
     assert demos.terminals[-1] and demos.terminals.sum() == 1  # only the fall is terminal
     np.testing.assert_allclose(demos.returns, [sum(e.rewards) for e in episodes])
+    assert demos.source == "minari:test/pendulum/tiny-v0" and demos.reference_returns is None
 
-    assert (
-        expert.main(
-            [
-                "import-minari",
-                "test/absent/none-v0",
-                "--env",
-                PENDULUM,
-                "--out",
-                str(tmp_path / "none.npz"),
-            ]
-        )
-        == 2
-    )
+    absent = ["import-minari", "test/absent/none-v0", "--env", PENDULUM, "--out"]
+    assert expert.main([*absent, str(tmp_path / "none.npz")]) == 2
     assert not (tmp_path / "none.npz").exists()
 
 
+def test_minari_dataset_by_id(tmp_path, monkeypatch, pendulum_expert, capsys):
+    """--demos minari:<id>: the first --trajectories episodes, subsampled as --sampling
+    says, converted once to demos/; the dataset's reference returns give the score."""
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path / "datasets"))
+    monkeypatch.setattr(expert, "DEMOS_DIR", tmp_path / "demos")
+    lengths = ((150, 1.0), (120, 1.0), (40, 0.0))
+    episodes = make_minari_dataset(
+        "test/pendulum/long-v0", pendulum_expert, lengths, ref_min_score=5.0, ref_max_score=150.0
+    )
+
+    def settings(**changes):
+        chosen = dict(demos="minari:test/pendulum/long-v0", env=PENDULUM, trajectories=2)
+        return SimpleNamespace(**chosen | dict(sampling="sparse", demo_seed=0) | changes)
+
+    path = expert.demo_path(settings(), make=False)
+    assert path.parent == tmp_path / "demos" and not path.exists()
+    assert expert.demo_path(settings()) == path and path.exists()
+    sparse = expert.load_demos(path, PENDULUM)
+    assert len(sparse) == 2 * 100 and sparse.trajectories == 2 and sparse.sampling == "sparse"
+    assert sparse.source == "minari:test/pendulum/long-v0"
+    assert "from minari:test/pendulum/long-v0" in sparse.describe()
+    first = {row.tobytes() for row in episodes[0].observations[:-1].astype(np.float32)}
+    assert sum(row.tobytes() in first for row in sparse.observations) == 100
+    dense = expert.load_demos(
+        expert.demo_path(settings(sampling="dense", trajectories=3)), PENDULUM
+    )
+    assert len(dense) == 150 + 120 + len(episodes[2].actions) and dense.terminals.sum() == 1
+    # No expert and no Table 1 row for the task: the dataset's reference returns score it.
+    assert expert.references_or_nan(PENDULUM, sparse) == (5.0, 150.0)
+    assert "minari:test/pendulum/long-v0's reference returns" in capsys.readouterr().out
+    with pytest.raises(UserError, match="fewer than 4 episodes"):
+        expert.demo_path(settings(trajectories=4))
+    with pytest.raises(UserError, match="recorded on InvertedPendulum-v4, not InvertedPendulum-v5"):
+        expert.demo_path(settings(env="InvertedPendulum-v5"))
+    with pytest.raises(UserError, match="cannot load Minari dataset 'test/absent/none-v0'"):
+        expert.demo_path(settings(demos="minari:test/absent/none-v0"))
+
+
 # --- shipped experts and the reference table -----------------------------------------------------
+
+
+def test_v5_tasks_are_served_by_the_v4_experts_where_the_observations_match():
+    for task in ("Hopper", "HalfCheetah", "Walker2d"):
+        policy = expert.load_expert(f"{task}-v5")
+        assert policy.env_id == f"{task}-v4"
+        assert expert.serving_expert_path(f"{task}-v5") == expert.default_expert_path(f"{task}-v4")
+        # A trainer writes a -v5 expert of its own, never over the -v4 one.
+        assert expert.default_expert_path(f"{task}-v5").name == f"{task}-v5.npz"
+        random_return, expert_return = expert.reference_returns(f"{task}-v5")
+        assert expert_return > 10 * abs(random_return)
+    with pytest.raises(UserError, match="trained on Hopper-v4, not Walker2d-v5"):
+        expert.load_expert("Walker2d-v5", expert.default_expert_path("Hopper-v4"))
+    for task, dims in (("Ant-v5", "105"), ("Humanoid-v5", "348")):
+        with pytest.raises(UserError, match=f"no expert serves {task} yet: .*{dims}"):
+            expert.load_expert(task)
+
+
+def test_learner_on_ant_v5_stops_with_one_line(tmp_path):
+    from helpers import assert_one_line_error, run_script
+
+    result = run_script("offpac_il.py", "--env", "Ant-v5", "--run-dir", tmp_path / "r", check=False)
+    assert_one_line_error(result, "no expert serves Ant-v5 yet", "contact forces", "--demos")
+    assert not (tmp_path / "r").exists()
 
 
 def test_shipped_hopper_expert_loads_and_acts():

@@ -525,11 +525,11 @@ def test_prepare_draws_pn_then_qn_from_the_runs_generator(hopper_demos):
 
     config = offpac_il.Config(**SMALL, demos=str(hopper_demos), replay_size=50)
     env = expert.make_env("Hopper-v4")
-    spaces, expert_buffer, learner, replay, demo_path = offpac_il.prepare(
+    spaces, expert_buffer, learner, replay, loaded = offpac_il.prepare(
         config, env, np.random.default_rng(4)
     )
     demos = expert.load_demos(hopper_demos, "Hopper-v4")
-    assert demo_path == Path(hopper_demos) and replay.size == 0 and replay.capacity == 50
+    assert loaded.path == Path(hopper_demos) and replay.size == 0 and replay.capacity == 50
     np.testing.assert_array_equal(expert_buffer.states, spaces.state(demos.observations))
     np.testing.assert_array_equal(expert_buffer.actions, spaces.from_env_action(demos.actions))
     rng = np.random.default_rng(4)

@@ -19,6 +19,28 @@ def test_shipped_hopper_expert_earns_its_return():
     assert returns.shape == (1,) and returns[0] > 3000
 
 
+def test_v4_experts_earn_their_return_on_the_v5_tasks_they_serve():
+    for env_id in ("Hopper-v5", "Walker2d-v5"):
+        returns = table.evaluate(env_id, expert.load_expert(env_id).act, episodes=1, seed=0)
+        assert returns[0] > 0.9 * expert.reference_returns(env_id)[1]
+    rows = json.loads(expert.TABLE_PATH.read_text())
+    assert set(table.TABLE_TASKS) <= set(rows)
+    assert rows["HalfCheetah-v5"]["expert_trained_on"] == "HalfCheetah-v4"
+    assert "expert_trained_on" not in rows["HalfCheetah-v4"]
+
+
+def test_tasks_measures_some_rows_and_keeps_the_others(tmp_path):
+    out = tmp_path / "table.json"
+    kept = {"Hopper-v4": json.loads(expert.TABLE_PATH.read_text())["Hopper-v4"]}
+    out.write_text(json.dumps(kept))
+    assert table.main(["--tasks", PENDULUM, "--episodes", "1", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())
+    assert list(rows) == ["Hopper-v4", PENDULUM] and rows["Hopper-v4"] == kept["Hopper-v4"]
+    assert rows[PENDULUM]["episodes"] == 1
+    assert table.main(["--tasks", "NoSuchTask-v0", "--out", str(out)]) == 2
+    assert json.loads(out.read_text()) == rows
+
+
 def test_random_policy_returns_are_seeded():
     first = table.random_policy_returns(PENDULUM, episodes=3, seed=5)
     again = table.random_policy_returns(PENDULUM, episodes=3, seed=5)
@@ -39,10 +61,11 @@ def test_measured_row_and_markdown(tmp_path, monkeypatch):
 def test_command_line_writes_the_table(tmp_path):
     out = tmp_path / "table.json"
     result = run_module("lab.table", "--episodes", "1", "--out", out, check=False)
-    # The five -v4 tasks, from the shipped experts: every row has an expert return.
+    # The five -v4 tasks and the three -v5 tasks a -v4 expert serves: every row has an
+    # expert return.
     assert result.returncode == 0, result.stderr
     rows = json.loads(out.read_text())
-    assert list(rows) == list(table.PAPER_TASKS)
+    assert list(rows) == list(table.TABLE_TASKS)
     assert all(row["expert_mean"] is not None and row["episodes"] == 1 for row in rows.values())
     assert "| Hopper-v4 | 11 | 3 |" in result.stdout
 
