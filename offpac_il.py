@@ -111,8 +111,6 @@ class Config(RunConfig):
     """Fraction of the policy step's states drawn from the demonstrations (paper: 0)."""
     exploration_noise: float = 0.0
     """Std of Gaussian noise added to executed actions in training (paper: 0; HalfCheetah)."""
-    expert_state_negatives: float = 0.0
-    """Fraction of the critic's replay rows replaced by (s_E, pi(s_E, z), s'_E) (paper: 0)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
 
@@ -475,12 +473,6 @@ def update(
     policy_lr = nets.linear_decay(config.policy_lr, interactions, config.total_steps)
     expert_batch = expert_buffer.sample(rng, config.batch_size)
     replay_batch = replay.sample(rng, config.batch_size)
-    n_own = round(config.expert_state_negatives * config.batch_size)
-    if n_own:  # a deviation under test: the policy's own actions at demonstrated states
-        own = expert_buffer.sample(rng, n_own)  # rated as the learner's (halved target)
-        noise = rng.standard_normal((n_own, learner.policy.noise_dim), np.float32)
-        own.actions = learner.policy.act(own.states, noise)
-        replay_batch = concatenated(own, replay_batch.take(np.arange(n_own, config.batch_size)))
     stats = variant.critic_step(learner, expert_batch, replay_batch, config, critic_lr, rng)
     states = policy_states(expert_buffer, replay, config, rng)
     stats.update(policy_step(learner, states, config, policy_lr, rng))
@@ -661,7 +653,6 @@ def check_config(config: Config) -> None:
         | {name: (0, math.inf, "[)") for name in ("log_every", "exploration_noise")}
         | {name: (0, math.inf, "()") for name in ("policy_lr", "critic_lr", "rmsprop_eps")}
         | {name: (0, 1, "[]") for name in ("policy_expert_states", "policy_average")}
-        | {"expert_state_negatives": (0, 1, "[]")}
         | {"rmsprop_decay": (0, 1, "[)"), "tau": (0, 1, "(]"), "gamma": (0, 1, "[)")},
     )
     for name in ("policy_hidden", "critic_hidden"):

@@ -372,42 +372,6 @@ def test_update_decays_the_learning_rates_linearly_and_uses_the_variants_critic_
     assert stats == {"critic_loss": 0.0, "q_policy": 0.5}
 
 
-@pytest.mark.parametrize("fraction", [0.0, 0.5])
-def test_expert_state_negatives_rate_the_policys_actions_at_demonstrated_states(fraction):
-    """--expert-state-negatives f: the first f of the critic's replay rows are
-    (s_E, pi(s_E, z), s'_E) from B_pi_E, drawn after the two batches; the rest are the
-    replay batch's last rows. At 0 nothing more is drawn (the golden run holds)."""
-    learner, config, _ = small_learner(10, expert_state_negatives=fraction, batch_size=4)
-    expert_buffer = random_triplets(np.random.default_rng(1), 12, terminal_fraction=0.5)
-    replay = offpac_il.ReplayBuffer(10, 3, 2)
-    for row in zip(*dataclasses.astuple(random_triplets(np.random.default_rng(2), 6)), strict=True):
-        replay.add(*row)
-    seen = {}
-
-    def critic_step(learner, expert_batch, replay_batch, config, lr, rng):
-        seen["expert"], seen["replay"] = expert_batch, replay_batch
-        return {}
-
-    policy = learner.policy.copy()  # as it acts before this update's policy step
-    draws = np.random.default_rng(3)
-    variant = offpac_il.Variant(critic_step=critic_step)
-    offpac_il.update(learner, expert_buffer, replay, config, 0, draws, variant)
-    expected = np.random.default_rng(3)
-    expert_batch = expert_buffer.sample(expected, 4)
-    replay_batch = replay.sample(expected, 4)
-    np.testing.assert_array_equal(seen["expert"].states, expert_batch.states)
-    if fraction == 0:
-        np.testing.assert_array_equal(seen["replay"].actions, replay_batch.actions)
-        return
-    own = expert_buffer.sample(expected, 2)
-    noise = expected.standard_normal((2, 3), np.float32)
-    np.testing.assert_array_equal(seen["replay"].states[:2], own.states)
-    np.testing.assert_array_equal(seen["replay"].next_states[:2], own.next_states)
-    np.testing.assert_array_equal(seen["replay"].terminal[:2], own.terminal)
-    np.testing.assert_array_equal(seen["replay"].actions[:2], policy.act(own.states, noise))
-    np.testing.assert_array_equal(seen["replay"].states[2:], replay_batch.states[2:])
-
-
 # ---------------------------------------------------------------------------------------
 # Acting and evaluating.
 # ---------------------------------------------------------------------------------------
