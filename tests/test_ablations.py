@@ -138,7 +138,7 @@ def test_reward_objective_check_catches_a_wrong_gradient(objective, monkeypatch)
             reward, "backward", lambda d, cache, **kw: backward(d, cache, input_grads=False)
         )
     else:
-        monkeypatch.setattr(ablations.nets, "bernoulli_entropy_grad", lambda x: -x)
+        monkeypatch.setattr(ablations, "bernoulli_entropy_grad", lambda x: -x)
     wrong = ablations.reward_loss_and_grads(*args)[1]["W1"]
     with pytest.raises(AssertionError):
         assert_gradient_close(wrong, numeric, OBJECTIVE_TOL, floor=OBJECTIVE_FLOOR)
