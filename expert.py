@@ -7,9 +7,9 @@ networks (Walker2d, Ant; lab/sac.py). This file is what the learner needs of the
 environments, the expert policy (load, act), demonstrations and Table 1's reference returns.
 
 Files:
-    experts/<env>.npz    a shipped expert: M, mu, std (ARS) or a policy network (SAC),
-                         action bounds, and a JSON ``metadata`` record of the training
-                         commands, seed, env steps and wall time
+    experts/<env>.npz    a shipped expert (written by lab/shipping.py): M, mu, std (ARS) or
+                         a policy network (SAC), action bounds, and a JSON ``metadata``
+                         record of the training commands, seed, env steps and wall time
     experts/table.json   Table 1 (measured by ``python -m lab.table``): the -v4 tasks, and the
                          -v5 tasks a -v4 expert serves (SERVED_BY)
     demos/*.npz          demonstrations: ``observations``, ``actions`` (env units),
@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import itertools
 import json
 import math
 import os
@@ -61,12 +62,10 @@ ACTION_BOUND_TOLERANCE = 1e-4
 
 @contextlib.contextmanager
 def _quiet_mujoco_compiler():
-    """Drop MuJoCo's "settotalmass is deprecated" compiler warning while a model is built.
-
-    gymnasium's HalfCheetah-v4 asset uses that attribute; MuJoCo 3 then writes the warning to
+    """Drop MuJoCo's "settotalmass is deprecated" compiler warning while a model is built:
+    gymnasium's HalfCheetah-v4 asset uses that attribute, and MuJoCo 3 writes the warning to
     stderr and to MUJOCO_LOG.TXT in the working directory on every make. Other MuJoCo
-    warnings are passed on as Python warnings.
-    """
+    warnings are passed on as Python warnings."""
     try:
         import mujoco
     except ImportError:
@@ -86,11 +85,9 @@ def _quiet_mujoco_compiler():
 
 
 def make_env(env_id: str, **kwargs) -> gym.Env:
-    """``gym.make`` for continuous-control tasks, refusing what the method cannot handle.
-
-    The learner needs a flat (1-D Box) state and a Box action space with finite bounds,
-    because it maps ``tanh`` outputs in [-1, 1] onto ``[low, high]``.
-    """
+    """``gym.make`` for continuous-control tasks, refusing what the method cannot handle: it
+    needs a flat (1-D Box) state, and a Box action space with finite bounds because it maps
+    ``tanh`` outputs in [-1, 1] onto ``[low, high]``."""
     with warnings.catch_warnings(), _quiet_mujoco_compiler():
         # gymnasium says "-v4 is out of date" on every make; the paper's tasks are -v4 on purpose.
         warnings.filterwarnings("ignore", message=".*is out of date.*")
@@ -154,10 +151,6 @@ class ExpertPolicy:
     network: nets.MLP | None = None  # SAC: state -> (mean, log std), (dim S) -> (2 dim A)
     metadata: dict = dataclasses.field(default_factory=dict)
 
-    @property
-    def kind(self) -> str:
-        return ARS_LINEAR if self.network is None else SAC_MLP
-
     def act(self, observation: np.ndarray) -> np.ndarray:
         """Deterministic action for one state, within the action bounds."""
         if self.network is None:
@@ -166,26 +159,6 @@ class ExpertPolicy:
         state = np.asarray(observation, dtype=self.network.dtype)[None]  # (1, dim S)
         mean = self.network.forward(state)[0][0, : len(self.action_low)]  # (dim A,)
         return tanh_to_bounds(np.tanh(mean).astype(np.float64), self.action_low, self.action_high)
-
-    __call__ = act
-
-    def save(self, path: Path, **metadata) -> None:
-        """Write the policy and its provenance (command, seed, steps, wall time, ...).
-
-        An ARS file holds ``weights``, ``obs_mean``, ``obs_std`` (the format of the first
-        shipped experts, which has no ``kind``); a SAC file holds ``kind`` = "sac-mlp",
-        the layer ``sizes`` and the network's ``policy/W0``, ``policy/b0``, ... .
-        """
-        if self.network is None:
-            arrays = dict(weights=self.weights, obs_mean=self.obs_mean, obs_std=self.obs_std)
-        else:
-            arrays = dict(kind=np.array(SAC_MLP), sizes=np.array(self.network.sizes))
-            arrays |= self.network.state("policy")
-        arrays |= dict(action_low=self.action_low, action_high=self.action_high)
-        record = json.dumps({**self.metadata, **metadata}, sort_keys=True)
-        harness.save_arrays(
-            path, {"env_id": np.array(self.env_id), **arrays, "metadata": np.array(record)}
-        )
 
 
 # gymnasium's -v5 tasks that a -v4 expert serves (see serving_expert_path).
@@ -211,16 +184,14 @@ def serving_expert_path(env_id: str) -> Path:
     episodes, Table 1: 3395 on both, 4171 on both, 4362 on -v5 against 4346 on -v4). Not so
     on Ant and Humanoid (NOT_SERVED), whose -v5 observations changed."""
     own = default_expert_path(env_id)
-    return (
-        own if own.exists() or env_id not in SERVED_BY else default_expert_path(SERVED_BY[env_id])
-    )
+    if own.exists() or env_id not in SERVED_BY:
+        return own
+    return default_expert_path(SERVED_BY[env_id])
 
 
 def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
-    """Load the expert that serves ``env_id`` (or the one at ``path``), checking it fits.
-
-    Files without a ``kind`` are ARS linear policies (every file written before SAC).
-    """
+    """Load the expert that serves ``env_id`` (or the one at ``path``), checking it fits. A
+    file without a ``kind`` is an ARS linear policy (every file written before SAC)."""
     path = Path(path) if path is not None else serving_expert_path(env_id)
     if not path.exists() and env_id in NOT_SERVED:
         why = f"no expert serves {env_id} yet: {NOT_SERVED[env_id]}"
@@ -327,11 +298,10 @@ def make_demos(
     Only trajectories that last the full 1000 steps with a return of at least `min_return`
     are used: otherwise the episode is dropped and the next reset seed is tried (the dropped
     seeds and the floor are recorded). By default the shipped expert (`expert` None) is held
-    to `demo_return_floor` and an expert of the caller's to no floor. *sparse* keeps
-    100 triplets per trajectory, drawn uniformly without replacement; *dense* keeps all 1000.
-    Everything comes from one Generator seeded with ``seed``, split into one stream for the
-    reset seeds and one for subsampling, so that sparse and dense demonstrations with the same
-    seed come from the same trajectories (sparse is a subset of dense).
+    to `demo_return_floor` and an expert of the caller's to no floor. Everything comes from
+    one Generator seeded with ``seed``, split into one stream for the reset seeds and one for
+    subsampling (`kept_steps`), so that sparse and dense demonstrations with the same seed
+    come from the same trajectories (sparse is a subset of dense).
     """
     check_sampling(sampling)
     if trajectories < 1:
@@ -441,10 +411,8 @@ def demo_return_floor(env_id: str) -> float:
 def ensure_demos(
     env_id: str, trajectories: int = 4, sampling: str = "sparse", seed: int = 0
 ) -> Path:
-    """The default demonstration file, made from the shipped expert the first time.
-
-    A cached file with a trajectory below `demo_return_floor` (made before that rule) is
-    made again."""
+    """The default demonstration file, made from the shipped expert the first time. A cached
+    file with a trajectory below `demo_return_floor` (made before that rule) is made again."""
     path = default_demos_path(env_id, trajectories, sampling, seed)
     if path.exists():
         try:
@@ -525,8 +493,8 @@ def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
         )
 
     recorded = (("returns", np.asarray), ("seed", int), ("sampling", str), ("trajectories", int))
+    recorded += (("source", str),)
     optional = {key: convert(arrays[key]) for key, convert in recorded if key in arrays}
-    optional |= {"source": str(arrays["source"])} if "source" in arrays else {}
     if len(scores) == 2:
         if not (np.all(np.isfinite(scores)) and scores[0] < scores[1]):
             raise fail(f"ref_min_score {scores[0]} and ref_max_score {scores[1]} are not ordered")
@@ -569,11 +537,9 @@ def import_minari(
     try:
         dataset = minari.load_dataset(dataset_id, download=False)
     except Exception as error:  # minari raises bare Exceptions/FileNotFoundError/ValueError
-        raise UserError(
-            f"cannot load Minari dataset {dataset_id!r} locally "
-            f"(MINARI_DATASETS_PATH={os.environ.get('MINARI_DATASETS_PATH', '~')}): "
-            f"{error}"
-        ) from None
+        where = f"MINARI_DATASETS_PATH={os.environ.get('MINARI_DATASETS_PATH', '~')}"
+        message = f"cannot load Minari dataset {dataset_id!r} locally ({where}): {error}"
+        raise UserError(message) from None
     recorded_on = getattr(dataset.env_spec, "id", env_id)
     if recorded_on != env_id:
         raise UserError(
@@ -581,9 +547,7 @@ def import_minari(
         )
     rng = np.random.default_rng(seed)
     chunks, returns = [], []
-    for episode in dataset.iterate_episodes():
-        if trajectories is not None and len(returns) >= trajectories:
-            break
+    for episode in itertools.islice(dataset.iterate_episodes(), trajectories):
         observations = np.asarray(episode.observations)  # (T + 1, dim S)
         if observations.dtype == object or observations.ndim != 2:
             raise UserError(f"{dataset_id}: observations are not flat arrays")
@@ -703,21 +667,16 @@ def parse(argv: list[str]) -> argparse.Namespace:
     demos = commands.add_parser("demos", help="write expert (s, a, s') demonstrations")
     demos.add_argument("--env", required=True)
     demos.add_argument("--trajectories", type=count, default=4)
-    demos.add_argument(
-        "--sampling",
-        choices=SAMPLING_MODES,
-        default="sparse",
-        help="sparse: 100 random triplets per trajectory; dense: all 1000",
-    )
+    sparse_or_dense = "sparse: 100 random triplets per trajectory; dense: all 1000"
+    demos.add_argument("--sampling", choices=SAMPLING_MODES, default="sparse", help=sparse_or_dense)
     demos.add_argument("--seed", type=int, default=0)
     demos.add_argument("--expert", help="expert file (default: experts/<env>.npz)")
     demos.add_argument("--out", help="default: demos/<env>-<sampling>-<n>traj-seed<seed>.npz")
     demos.add_argument("--force", action="store_true", help="replace an existing --out file")
     demos.set_defaults(handler=cli_demos)
 
-    minari = commands.add_parser(
-        "import-minari", help="convert a locally stored Minari dataset to a demonstration file"
-    )
+    converts = "convert a locally stored Minari dataset to a demonstration file"
+    minari = commands.add_parser("import-minari", help=converts)
     minari.add_argument("dataset_id", help="e.g. mujoco/hopper/expert-v0")
     minari.add_argument("--env", required=True, help="environment the triplets are for")
     minari.add_argument("--out", required=True)

@@ -72,12 +72,10 @@ def _write_atomically(path, write) -> None:
 
 
 def save_arrays(path, arrays: dict[str, np.ndarray]) -> None:
-    """Write an .npz atomically."""
     _write_atomically(path, lambda f: np.savez(f, **arrays))
 
 
 def write_text(path, text: str) -> None:
-    """Write a text file atomically."""
     _write_atomically(path, lambda f: f.write(text.encode()))
 
 
@@ -100,18 +98,15 @@ def load_arrays(path) -> dict[str, np.ndarray]:
 
 def field_docstrings(cls) -> dict[str, str]:
     """The string literal under each dataclass field."""
-    tree = ast.parse(inspect.getsource(cls))
-    body = tree.body[0].body
-    docs = {}
-    for previous, node in zip(body, body[1:], strict=False):
-        if (
-            isinstance(previous, ast.AnnAssign)
-            and isinstance(node, ast.Expr)
-            and isinstance(node.value, ast.Constant)
-            and isinstance(node.value.value, str)
-        ):
-            docs[previous.target.id] = node.value.value
-    return docs
+    body = ast.parse(inspect.getsource(cls)).body[0].body
+    return {
+        annotated.target.id: doc.value.value
+        for annotated, doc in zip(body, body[1:], strict=False)
+        if isinstance(annotated, ast.AnnAssign)
+        and isinstance(doc, ast.Expr)
+        and isinstance(doc.value, ast.Constant)
+        and isinstance(doc.value.value, str)
+    }
 
 
 def add_dataclass_flags(parser: argparse.ArgumentParser, cls) -> None:
@@ -121,16 +116,16 @@ def add_dataclass_flags(parser: argparse.ArgumentParser, cls) -> None:
         if dataclasses.is_dataclass(klass):
             docs.update(field_docstrings(klass))
     for f in dataclasses.fields(cls):
-        flag, default = "--" + f.name.replace("_", "-"), f.default
+        name, default = flag(f.name), f.default
         if isinstance(default, bool):
             parser.add_argument(
-                flag, action=argparse.BooleanOptionalAction, default=default, help=docs[f.name]
+                name, action=argparse.BooleanOptionalAction, default=default, help=docs[f.name]
             )
         elif isinstance(default, tuple):
-            parser.add_argument(flag, type=int, nargs="+", default=default, help=docs[f.name])
+            parser.add_argument(name, type=int, nargs="+", default=default, help=docs[f.name])
         else:
             kind = whole_number if type(default) is int else type(default)
-            parser.add_argument(flag, type=kind, default=default, help=docs[f.name])
+            parser.add_argument(name, type=kind, default=default, help=docs[f.name])
 
 
 def whole_number(text: str) -> int:
@@ -143,13 +138,7 @@ def whole_number(text: str) -> int:
 
 def config_from_args(cls, args: argparse.Namespace):
     """The dataclass `cls` with the parsed flags' values (lists become tuples)."""
-    return cls(
-        **{
-            f.name: tuple(v) if isinstance(v, list) else v
-            for f in dataclasses.fields(cls)
-            for v in [getattr(args, f.name)]
-        }
-    )
+    return saved_config(cls, vars(args), {})
 
 
 def flag(name: str) -> str:
@@ -157,11 +146,9 @@ def flag(name: str) -> str:
 
 
 def check_numbers(config, ranges: dict[str, tuple[float, float, str]]) -> None:
-    """Refuse non-finite numbers anywhere in `config`, and numbers outside `ranges`.
-
-    ranges: field -> (low, high, kind) with kind "[]" (both ends allowed), "(]", "[)"
-    or "()". A tuple field (layer sizes) has every element checked.
-    """
+    """Refuse non-finite numbers anywhere in `config` (each element of a tuple field), and
+    numbers outside `ranges`: field -> (low, high, kind), kind "[]" (both ends allowed),
+    "(]", "[)" or "()"."""
     for f in dataclasses.fields(config):
         values = getattr(config, f.name)
         for value in values if isinstance(values, tuple) else (values,):
@@ -198,8 +185,7 @@ def shown(value, spec: str) -> str:
 
 
 class CommandLineParser(argparse.ArgumentParser):
-    """argparse, but a bad flag ends in one line on stderr and exit status 2 (no usage
-    dump), like every other error a user can cause."""
+    """argparse, but a bad flag ends in one line on stderr and exit status 2 (no usage dump)."""
 
     def error(self, message: str):
         print(f"error: {message} (see {self.prog} --help)", file=sys.stderr)
@@ -217,18 +203,11 @@ def config_from_command_line(argv, config_class, description, paper: dict, may_c
     add_dataclass_flags(parser, config_class)
     if paper:
         settings = ", ".join(f"{flag(k)} {v:g}" for k, v in paper.items())
-        parser.add_argument(
-            "--paper",
-            action="store_true",
-            help=f"the paper's values where the defaults deviate ({settings}); flags given win",
-        )
-    parser.add_argument(
-        "--resume",
-        metavar="RUN_DIR",
-        default="",
-        help="continue the run in RUN_DIR from its last checkpoint with its saved settings;"
-        f" only {', '.join(map(flag, may_change)) or 'no flag'} may be given anew",
-    )
+        explained = f"the paper's values where the defaults deviate ({settings}); flags given win"
+        parser.add_argument("--paper", action="store_true", help=explained)
+    explained = "continue the run in RUN_DIR from its last checkpoint with its saved settings;"
+    explained += f" only {', '.join(map(flag, may_change)) or 'no flag'} may be given anew"
+    parser.add_argument("--resume", metavar="RUN_DIR", default="", help=explained)
     args = parser.parse_args(argv)
     if getattr(args, "paper", False):
         parser.set_defaults(**paper)
@@ -280,21 +259,11 @@ def _lock(run_dir: Path) -> None:
     _held_locks[key] = fd
 
 
-def release(run_dir) -> None:
-    """Give up this process's lock on run_dir (tests; a process exiting drops it anyway)."""
-    fd = _held_locks.pop(Path(run_dir).resolve(), None)
-    if fd is not None:
-        os.close(fd)
-
-
 def open_run_dir(run_dir, resume: bool) -> Path:
-    """Check, create and lock a run directory.
-
-    A fresh run refuses a directory that holds a checkpoint; a resume needs config.json,
-    progress.csv and checkpoint.npz. Either way the directory is locked first, so a
-    second process on it (started at the same instant, or a --resume of a live run)
-    stops here with one line, before it writes anything.
-    """
+    """Check, create and lock a run directory: a fresh run refuses one that holds a
+    checkpoint, a resume needs config.json, progress.csv and checkpoint.npz. The lock comes
+    first, so a second process on the directory (started at the same instant, or a
+    --resume of a live run) stops here with one line, before it writes anything."""
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise UserError(f"--run-dir {run_dir} is a file, not a directory")
@@ -356,23 +325,16 @@ def save_checkpoint(run_dir, arrays: dict[str, np.ndarray], rng, progress, field
     a row ahead, which the resumed run rewrites from the checkpoint's rows."""
     write_text(Path(run_dir) / PROGRESS, progress_csv(progress.rows, fields))
     counters = {k: v for k, v in dataclasses.asdict(progress).items() if k != "rows"}
-    save_arrays(
-        Path(run_dir) / CHECKPOINT,
-        {
-            **arrays,
-            "rng": np.array(json.dumps(rng.bit_generator.state)),
-            "counters": np.array(json.dumps(counters)),
-            "rows": np.array(json.dumps(progress.rows)),
-        },
-    )
+    records = {"rng": rng.bit_generator.state, "counters": counters, "rows": progress.rows}
+    records = {name: np.array(json.dumps(value)) for name, value in records.items()}
+    save_arrays(Path(run_dir) / CHECKPOINT, arrays | records)
 
 
 def load_checkpoint(run_dir, rng, load: Callable[[dict], None], progress_class=None):
     """Restore `rng` in place, call load(arrays) to copy the checkpoint's arrays into the
-    networks and buffers, and return the progress (`progress_class`, by default
-    Progress). progress.csv may hold rows written after the checkpoint: the checkpoint's
-    own rows are the truth, and a resumed run rewrites the file from them. A truncated,
-    corrupted or foreign file is a UserError naming it."""
+    networks and buffers, and return the progress (`progress_class`, by default Progress)
+    with the checkpoint's rows, which a resumed run's progress.csv is rewritten from. A
+    truncated, corrupted or foreign file is a UserError naming it."""
     path = Path(run_dir) / CHECKPOINT
     arrays = load_arrays(path)
     try:
@@ -527,21 +489,15 @@ def stop_at_next_checkpoint():
         _stop.clear()
 
 
-def stop_requested() -> bool:
-    """Has a signal asked the run to stop at its next checkpoint?"""
-    return _stop.is_set()
-
-
 def stop_if_requested() -> None:
-    """After a checkpoint: end the run if a signal asked for it; `run_cli` reports the
-    KeyboardInterrupt as "continue with --resume"."""
+    """After a checkpoint: end the run (KeyboardInterrupt) if a signal asked for it."""
     if _stop.is_set():
         raise KeyboardInterrupt
 
 
 def run_cli(body: Callable[[], object]) -> int:
     """A trainer's main: body() with BLAS on one thread (the threads come from
-    map_chunks) and signals stopping at the next checkpoint; errors a user can cause
+    map_row_chunks) and signals stopping at the next checkpoint; errors a user can cause
     become one line on stderr and exit status 2."""
     from threadpoolctl import threadpool_limits
 
@@ -559,10 +515,8 @@ def run_cli(body: Callable[[], object]) -> int:
         if error.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise
         where = f" writing {error.filename}" if error.filename else ""
-        print(
-            f"error: disk full{where}; the last checkpoint is kept, free space and --resume",
-            file=sys.stderr,
-        )
+        message = f"disk full{where}; the last checkpoint is kept, free space and --resume"
+        print(f"error: {message}", file=sys.stderr)
         return 2
     return 0
 
@@ -617,12 +571,11 @@ def reuse_freed_memory() -> None:
 
 
 def cli_main(argv, parse: Callable, run: Callable, checkpoints: bool = True) -> int:
-    """A command's main: run(parse(argv), argv) under run_cli. parse raises SystemExit for
-    --help (0) and a bad flag (2, its one line printed), and those become the status.
-
-    A command without checkpoints (checkpoints=False: expert.py's, lab.table) stops at
-    once on Ctrl-C or `kill`, saying "interrupted" (status 130): it writes its one file
-    atomically at its end, so there is nothing to resume."""
+    """A command's main: run(parse(argv), argv) under run_cli; parse's SystemExit (--help:
+    0, a bad flag: 2, its one line printed) becomes the status. A command without
+    checkpoints (checkpoints=False: expert.py's, lab.table) stops at once on Ctrl-C or
+    `kill`, saying "interrupted" (status 130): it writes its one file atomically at its end,
+    so there is nothing to resume."""
     argv = sys.argv[1:] if argv is None else argv
 
     def at_once() -> None:

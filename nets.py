@@ -14,10 +14,8 @@ Conventions, after numpy-ml and micrograd:
   for the finite-difference checks in `tests/`. Every constant is a Python float, which
   NumPy 2 casts to the array's dtype, so float32 code never promotes to float64.
 
-Speed notes, measured on 8192 x 500 float32 arrays (the policy step's critic pass):
-a boolean mask costs as much as a 500 x 500 matrix product there (about 30 ms), so the
-leaky-ReLU derivative is computed arithmetically, and element-wise work runs in place
-with `out=`.
+Speed: on the policy step's (8192, 500) float32 arrays a boolean mask costs as much as a
+500 x 500 matrix product, so element-wise work runs in place (`out=`), without masks.
 """
 
 from __future__ import annotations
@@ -29,9 +27,7 @@ import numpy as np
 LEAKY_SLOPE = 0.01
 
 
-# ----------------------------------------------------------------------------------------
-# Element-wise pieces: each forward beside its derivative.
-# ----------------------------------------------------------------------------------------
+# === Element-wise pieces: each forward beside its derivative ===
 
 
 def leaky_relu_(x: np.ndarray, scratch: np.ndarray) -> np.ndarray:
@@ -68,10 +64,7 @@ def softplus(x: np.ndarray) -> np.ndarray:
 
 
 def log_sigmoid(x: np.ndarray) -> np.ndarray:
-    """log q for q = sigmoid(x): the critic's value Q = log q (Eq. 10), from the logit.
-
-    Its derivative is d log q / dx = 1 - q = sigmoid(-x) (see `log_sigmoid_grad`).
-    """
+    """log q for q = sigmoid(x): the critic's value Q = log q (Eq. 10), from the logit."""
     return -softplus(-x)
 
 
@@ -104,9 +97,7 @@ def head_backward(head: str, d_out: np.ndarray, out: np.ndarray) -> np.ndarray:
     raise ValueError(f"unknown head {head!r}; expected one of {HEADS}")
 
 
-# ----------------------------------------------------------------------------------------
-# The Jensen-Shannon divergence between two Bernoulli distributions (objective 18).
-# ----------------------------------------------------------------------------------------
+# === The Jensen-Shannon divergence between two Bernoulli distributions (objective 18) ===
 
 
 def _log_mean_and_complement(x: np.ndarray, t: np.ndarray):
@@ -161,9 +152,7 @@ def js_divergence_grad(x: np.ndarray, t: np.ndarray) -> np.ndarray:
     return 0.5 * p_times_1mp * (x - (log_m - log_1mm))
 
 
-# ----------------------------------------------------------------------------------------
-# The multilayer perceptron.
-# ----------------------------------------------------------------------------------------
+# === The multilayer perceptron ===
 
 
 def _xavier(rng: np.random.Generator, fan_in: int, fan_out: int, dtype) -> np.ndarray:
@@ -174,17 +163,12 @@ def _xavier(rng: np.random.Generator, fan_in: int, fan_out: int, dtype) -> np.nd
 
 @dataclass
 class Cache:
-    """What `backward` needs from `forward`.
+    """What `backward` needs from `forward`."""
 
-    blocks: the input blocks as given; activations[i]: the (i+1)-th hidden layer's
-    output (batch, hidden); logits: the head's input and output: the head's output,
-    both (batch, out). For the critic, logits is x with q = sigmoid(x) (Eq. 10).
-    """
-
-    blocks: tuple[np.ndarray, ...]
-    activations: list[np.ndarray]
-    logits: np.ndarray
-    output: np.ndarray
+    blocks: tuple[np.ndarray, ...]  # the input blocks as given
+    activations: list[np.ndarray]  # [i]: hidden layer i+1's output, (batch, hidden)
+    logits: np.ndarray  # the head's input, (batch, out); the critic's x, q = sigmoid(x) (Eq. 10)
+    output: np.ndarray  # the head's output, (batch, out)
 
 
 @dataclass
@@ -361,9 +345,7 @@ class MLP:
             value[...] = arrays[f"{prefix}/{name}"]
 
 
-# ----------------------------------------------------------------------------------------
-# Optimiser and target network (Appendix B).
-# ----------------------------------------------------------------------------------------
+# === Optimiser and target network (Appendix B) ===
 
 
 @dataclass

@@ -34,7 +34,6 @@ import numpy as np
 import expert
 import harness
 import nets
-from harness import UserError
 
 
 @dataclass
@@ -116,8 +115,7 @@ class Config(RunConfig):
 
 
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
-PAPER_SETTINGS = {"policy_lr": 1e-4, "critic_lr": 1e-3, "policy_expert_states": 0.0}
-PAPER_SETTINGS |= {"policy_average": 0.0}
+PAPER_SETTINGS = dict(policy_lr=1e-4, critic_lr=1e-3, policy_expert_states=0.0, policy_average=0.0)
 
 
 # === The critic step: objective (18) ===
@@ -159,9 +157,8 @@ def critic_loss_and_grads(critic: nets.MLP, batch: Triplets, t: np.ndarray, n_ex
     """Objective (18) and its gradient w.r.t. every critic parameter, for fixed t.
 
     D_JS(P_nu(.|s, a) || Bern(t)) with P_nu(pi_E|s, a) = q_nu(s, a) (Eq. 12), averaged
-    over the expert rows and over the replay rows, the two averages added. With t
-    frozen, the gradient w.r.t. the critic's logit x is
-    dD_JS/dx = 1/2 p(1-p)(logit p - logit m), m = (p + t)/2 (nets.js_divergence_grad),
+    over the expert rows and over the replay rows, the two averages added. With t frozen,
+    its gradient in the critic's logit x (nets.js_divergence_grad; m = (p + t)/2) is
     backpropagated through QN. batch: n_expert expert rows, then as many replay rows;
     t: (rows, 1). Returns (loss, grads, critic cache).
     """
@@ -198,12 +195,9 @@ def critic_step(
     loss, grads, cache = critic_loss_and_grads(learner.critic, batch, t[:, None], n)
     learner.critic_optimizer.step(learner.critic.params, grads, lr)
     nets.soft_update(learner.target_critic, learner.critic, config.tau)
-    q = cache.output[:, 0]
-    return {
-        "critic_loss": loss,
-        "q_expert": float(q[:n].mean()),
-        "q_replay": float(q[n:].mean()),
-    } | stats
+    q = cache.output[:, 0]  # q_nu(s, a): the expert rows, then the replay rows
+    q_expert, q_replay = float(q[:n].mean()), float(q[n:].mean())
+    return {"critic_loss": loss, "q_expert": q_expert, "q_replay": q_replay} | stats
 
 
 # === The policy step: gradient (6) ===
@@ -243,10 +237,8 @@ def policy_loss_and_grads(learner: Learner, states: np.ndarray, noise: np.ndarra
     grads = {
         name: sum(p[0][name] for p in parts[1:]) + parts[0][0][name] for name in parts[0][0]
     }  # the chunks' partial sums, in a fixed order
-    stats = {
-        "q_policy": sum(p[2] for p in parts) / len(noise),
-        "saturation": sum(p[3][0] for p in parts) / sum(p[3][1] for p in parts),
-    }
+    saturation = sum(p[3][0] for p in parts) / sum(p[3][1] for p in parts)
+    stats = {"q_policy": sum(p[2] for p in parts) / len(noise), "saturation": saturation}
     return sum(p[1] for p in parts), grads, stats
 
 
@@ -259,9 +251,7 @@ def policy_states(
     states = replay.sample(rng, config.batch_size).states
     n_expert = round(config.policy_expert_states * config.batch_size)
     if n_expert:
-        states[:n_expert] = expert_buffer.states[
-            rng.integers(0, len(expert_buffer.states), n_expert)
-        ]
+        states[:n_expert] = expert_buffer.sample(rng, n_expert).states
     return states
 
 
@@ -278,7 +268,6 @@ def policy_step(
 
 
 # === Buffers of (s, a, s') triplets in the networks' units ===
-# `terminal` marks a terminal s', not a time limit (which always bootstraps).
 
 
 @dataclass
@@ -286,12 +275,10 @@ class Triplets:
     states: np.ndarray  # (N, dim s)
     actions: np.ndarray  # (N, dim A), in [-1, 1]
     next_states: np.ndarray  # (N, dim s)
-    terminal: np.ndarray  # (N,) bool
+    terminal: np.ndarray  # (N,) bool: s' is terminal (a time limit is not: it bootstraps)
 
     def take(self, index: np.ndarray) -> Triplets:
-        return Triplets(
-            self.states[index], self.actions[index], self.next_states[index], self.terminal[index]
-        )
+        return Triplets(*(getattr(self, f.name)[index] for f in dataclasses.fields(self)))
 
     def sample(self, rng: np.random.Generator, n: int) -> Triplets:
         return self.take(rng.integers(0, len(self.states), n))
@@ -320,9 +307,8 @@ class ReplayBuffer:
         return self.data.take(rng.integers(0, self.size, n))
 
     def state(self) -> dict[str, np.ndarray]:
-        arrays = {
-            f"replay/{f.name}": getattr(self.data, f.name) for f in dataclasses.fields(Triplets)
-        }
+        fields = dataclasses.fields(Triplets)
+        arrays = {f"replay/{f.name}": getattr(self.data, f.name) for f in fields}
         return arrays | {"replay/size_next": np.array([self.size, self.next_index])}
 
     def load_state(self, arrays) -> None:
@@ -340,8 +326,7 @@ class BoundedPolicy:
 
     `states` (G, dim s) may be shared by the N/G consecutive rows of `noise` (N, dim z)
     (nets.MLP's shared blocks): the policy step's 128 samples per state reuse the state's
-    part of PN's first layer. lab/ablations.py has the Gaussian and fixed-noise policies
-    of Ours+GP and Ours+DP, with these same methods.
+    part of PN's first layer. The ablations' policies (Variant) have these same methods.
     """
 
     net: nets.MLP
@@ -398,14 +383,9 @@ class Learner:
         keeps PN's shape starts from Ours' networks at one seed."""
         sizes = [state_dim + action_dim, *config.critic_hidden, 1]
         critic = nets.MLP.create(sizes, "sigmoid", rng, dtype)
-        return cls(
-            policy,
-            critic,
-            critic.copy(),
-            nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps),
-            nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps),
-            policy.copy() if config.policy_average > 0 else None,
-        )
+        optimizers = [nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps) for _ in range(2)]
+        average_policy = policy.copy() if config.policy_average > 0 else None
+        return cls(policy, critic, critic.copy(), *optimizers, average_policy)
 
     def averaged(self) -> Learner:
         """This learner acting with the averaged PN."""
@@ -419,11 +399,7 @@ class Learner:
         return parts | ({"average_policy": self.average_policy} if self.average_policy else {})
 
     def state(self) -> dict[str, np.ndarray]:
-        return {
-            key: value
-            for name, part in self.parts().items()
-            for key, value in part.state(name).items()
-        }
+        return {k: v for name, part in self.parts().items() for k, v in part.state(name).items()}
 
     def load_state(self, arrays) -> None:
         for name, part in self.parts().items():
@@ -497,8 +473,7 @@ class Spaces:
     absorbing: bool
 
     def to_env_action(self, action: np.ndarray) -> np.ndarray:
-        """[-1, 1] -> [low, high]: low + (a + 1)(high - low)/2."""
-        return self.low + (action + 1.0) * (self.high - self.low) / 2.0
+        return expert.tanh_to_bounds(action, self.low, self.high)
 
     def from_env_action(self, env_action: np.ndarray) -> np.ndarray:
         """[low, high] -> [-1, 1], clipped at the bounds."""
@@ -522,8 +497,7 @@ class Spaces:
 def make_spaces(env, demos: expert.Demos, config: Config) -> Spaces:
     obs_dim = env.observation_space.shape[0]
     if config.standardize:
-        mean = demos.observations.mean(axis=0)
-        std = demos.observations.std(axis=0) + 1e-3
+        mean, std = demos.observations.mean(axis=0), demos.observations.std(axis=0) + 1e-3
     else:
         mean, std = np.zeros(obs_dim, np.float32), np.ones(obs_dim, np.float32)
     return Spaces(
@@ -555,11 +529,9 @@ def run_episode(
     exploration_noise: float = 0.0,
 ) -> tuple[float, int]:
     """One episode with a_t = pi_theta(s_t, z), z ~ N(0, I); stores triplets if `replay`.
-    Returns (true return, length).
-
-    exploration_noise > 0 (a deviation for HalfCheetah): a_t + N(0, sigma^2 I), clipped
-    to [-1, 1], is executed and stored. An unbounded action (Ours+GP) is clipped only on
-    its way to the environment; the replay stores it as sampled.
+    Returns (true return, length). exploration_noise > 0 (a deviation for HalfCheetah):
+    a_t + N(0, sigma^2 I), clipped to [-1, 1], is executed and stored. An unbounded action
+    (Ours+GP) is clipped only on its way to the environment; the replay stores it as sampled.
     """
     observation, _ = env.reset(seed=seed)
     state = spaces.state(observation)
@@ -603,15 +575,13 @@ def imitation_diagnostics(learner: Learner, expert_buffer: Triplets, rng) -> dic
     """How the policy and the critic see the expert's own states: the policy's squared
     action error, q at the expert's and at the policy's actions, the critic's sharpness
     there (1/2 mean ||dx/d[s, a]||^2), and the std of pi(s_E, z) over 8 noise vectors."""
-    states = expert_buffer.states
-    noise = rng.standard_normal((len(states), learner.policy.noise_dim), np.float32)
+    states, noise_dim = expert_buffer.states, learner.policy.noise_dim
+    noise = rng.standard_normal((len(states), noise_dim), np.float32)
     actions = learner.policy.act(states, noise)
     q_expert, _ = learner.critic.forward((states, expert_buffer.actions))
     q_policy, policy_cache = learner.critic.forward((states, actions))
     z_per_state = 8  # each state is shared by 8 consecutive noise rows
-    spread_noise = rng.standard_normal(
-        (len(states) * z_per_state, learner.policy.noise_dim), np.float32
-    )
+    spread_noise = rng.standard_normal((len(states) * z_per_state, noise_dim), np.float32)
     spread = learner.policy.act(states, spread_noise).reshape(len(states), z_per_state, -1)
     return {
         "expert_action_error": float(((actions - expert_buffer.actions) ** 2).mean()),
@@ -643,21 +613,21 @@ def snapshot_path(run_dir: Path, interactions: int) -> Path:
 
 def check_config(config: Config) -> None:
     """Refuse settings that cannot work, with one clear line, before anything is written."""
-    harness.check_choices(config, {"termination": TERMINATIONS, "sampling": ("sparse", "dense")})
+    harness.check_choices(config, {"termination": TERMINATIONS, "sampling": expert.SAMPLING_MODES})
     at_least_one = ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples")
     at_least_one += ("target_samples", "eval_every", "eval_episodes")
+    non_negative = ("seed", "demo_seed", "checkpoint_every", "log_every", "exploration_noise")
     harness.check_numbers(
         config,
         {name: (1, math.inf, "[)") for name in at_least_one}
-        | {name: (0, math.inf, "[)") for name in ("seed", "demo_seed", "checkpoint_every")}
-        | {name: (0, math.inf, "[)") for name in ("log_every", "exploration_noise")}
+        | {name: (0, math.inf, "[)") for name in non_negative}
         | {name: (0, math.inf, "()") for name in ("policy_lr", "critic_lr", "rmsprop_eps")}
         | {name: (0, 1, "[]") for name in ("policy_expert_states", "policy_average")}
         | {"rmsprop_decay": (0, 1, "[)"), "tau": (0, 1, "(]"), "gamma": (0, 1, "[)")},
     )
     for name in ("policy_hidden", "critic_hidden"):
         if not getattr(config, name) or min(getattr(config, name)) < 1:
-            raise UserError(f"{harness.flag(name)} needs layer sizes of at least 1")
+            raise harness.UserError(f"{harness.flag(name)} needs layer sizes of at least 1")
 
 
 TERMINATIONS = ("bootstrap", "absorbing", "zero")
@@ -685,19 +655,6 @@ def load_checkpoint(run_dir, learner: Learner, replay: ReplayBuffer, rng) -> har
     )
 
 
-def restore(run_dir, variant: Variant = OURS):
-    """A run as its last checkpoint left it (for looking into it, not for training):
-    (config, spaces, expert_buffer, learner, replay, progress)."""
-    saved = {**harness.read_config(run_dir), "run_dir": str(run_dir)}
-    config = harness.saved_config(Config, saved, PAPER_SETTINGS)
-    rng = np.random.default_rng(config.seed)
-    spaces, expert_buffer, learner, replay, _ = prepare(
-        config, expert.make_env(config.env), rng, variant
-    )
-    progress = load_checkpoint(run_dir, learner, replay, rng)
-    return config, spaces, expert_buffer, learner, replay, progress
-
-
 def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harness.Progress:
     """Algorithm 1, with evaluation, logging and checkpoints around it."""
     check_config(config)
@@ -716,10 +673,8 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
     clock = harness.Clock(progress, config.checkpoint_every, config.log_every)
 
     def check_finite() -> None:  # before acting, and before a checkpoint overwrites the last
-        observations = {"observations": replay.data.states[: replay.size]}
-        harness.check_finite(
-            learner.state() | observations, f"by {progress.interactions} interactions"
-        )
+        arrays = learner.state() | {"observations": replay.data.states[: replay.size]}
+        harness.check_finite(arrays, f"by {progress.interactions} interactions")
 
     def checkpoint() -> None:
         check_finite()
@@ -744,6 +699,8 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
                     "average_score": expert.normalized_score(average_return, references),
                     "average_falls": average_falls,
                 }
+                average_policy = learner.average_policy.state("policy")
+                harness.save_arrays(run_dir / "policy_average.npz", average_policy)
             score = expert.normalized_score(float(returns.mean()), references)
             clock.tick()
             row = progress.record(returns, score, measured, fields)
@@ -752,10 +709,6 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
             if returns.mean() > progress.best_eval_return:
                 progress.best_eval_return = float(returns.mean())
                 harness.save_arrays(run_dir / "policy_best.npz", policy)
-            if learner.average_policy is not None:
-                harness.save_arrays(
-                    run_dir / "policy_average.npz", learner.average_policy.state("policy")
-                )
             print(
                 f"eval  {progress.interactions:>8d} steps  return {returns.mean():8.1f}"
                 f" ± {returns.std():6.1f}  score {row['normalized_score']:6.3f}"
@@ -817,12 +770,9 @@ def main(argv: list[str] | None = None, config_class=Config, variant_of=lambda c
     argv = sys.argv[1:] if argv is None else argv
 
     def body() -> None:
+        description = "Off-policy actor-critic imitation learning (Sasaki et al., ICLR 2019)."
         config, resume = harness.config_from_command_line(
-            argv,
-            config_class,
-            "Off-policy actor-critic imitation learning (Sasaki et al., ICLR 2019).",
-            PAPER_SETTINGS,
-            RESUMABLE_CHANGES,
+            argv, config_class, description, PAPER_SETTINGS, RESUMABLE_CHANGES
         )
         train(config, resume, variant_of(config))
 

@@ -1148,15 +1148,21 @@ def draw_figures(runs_roots, out_dir, names=tuple(FIGURES)) -> dict[str, Path | 
 
 
 def restored(run_dir):
-    """offpac_il.restore with the run's own variant (an ablation's, for a run of
-    lab/ablations.py): (config, spaces, expert_buffer, learner, replay, progress)."""
+    """A learner run as its last checkpoint left it, with the run's own variant (an
+    ablation's, for a run of lab/ablations.py), for looking into it, not for training:
+    (config, spaces, expert_buffer, learner, replay, progress)."""
+    import expert
     import offpac_il
     from lab import ablations
 
-    config = learner_config(read_config(run_dir))
+    config = learner_config({**read_config(run_dir), "run_dir": str(run_dir)})
     if not (Path(run_dir) / harness.CHECKPOINT).exists():
         raise UserError(f"{run_dir} holds no checkpoint")
-    return offpac_il.restore(run_dir, ablations.variant_of(config))
+    rng = np.random.default_rng(config.seed)
+    env, variant = expert.make_env(config.env), ablations.variant_of(config)
+    spaces, expert_buffer, learner, replay, _ = offpac_il.prepare(config, env, rng, variant)
+    progress = offpac_il.load_checkpoint(run_dir, learner, replay, rng)
+    return config, spaces, expert_buffer, learner, replay, progress
 
 
 def fell(env, length: int) -> bool:

@@ -10,6 +10,7 @@ file's recorded evaluation sets.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import shlex
 from pathlib import Path
@@ -17,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 import expert
+import harness
 from harness import UserError
 
 
@@ -43,6 +45,26 @@ def bar_to_beat(env_id: str, path: Path, log=say) -> float:
     return float(recorded)
 
 
+def save_expert(policy: expert.ExpertPolicy, path: Path, **metadata) -> None:
+    """Write `policy` as an expert file that expert.load_expert reads, with its provenance
+    (the policy's metadata updated by `metadata`: command, seed, steps, wall time, ...).
+
+    An ARS file holds ``weights``, ``obs_mean``, ``obs_std`` (the format of the first
+    shipped experts, which has no ``kind``); a SAC file holds ``kind`` = "sac-mlp",
+    the layer ``sizes`` and the network's ``policy/W0``, ``policy/b0``, ... .
+    """
+    if policy.network is None:
+        arrays = dict(weights=policy.weights, obs_mean=policy.obs_mean, obs_std=policy.obs_std)
+    else:
+        arrays = dict(kind=np.array(expert.SAC_MLP), sizes=np.array(policy.network.sizes))
+        arrays |= policy.network.state("policy")
+    arrays |= dict(action_low=policy.action_low, action_high=policy.action_high)
+    record = json.dumps({**policy.metadata, **metadata}, sort_keys=True)
+    harness.save_arrays(
+        path, {"env_id": np.array(policy.env_id), **arrays, "metadata": np.array(record)}
+    )
+
+
 def ship(
     policy: expert.ExpertPolicy, path: Path, returns: np.ndarray, trainer: str, run, seed, config
 ) -> None:
@@ -50,7 +72,8 @@ def ship(
     the `trainer`, the run's counters (`run`: its commands, interactions and wall_seconds,
     as lab.ars.ARSState and lab.sac.Progress hold them), `seed` and the hyperparameters
     (`config`, a dataclass)."""
-    policy.save(
+    save_expert(
+        policy,
         path,
         trainer=trainer,
         commands=list(run.commands),

@@ -3,11 +3,22 @@
 from __future__ import annotations
 
 import csv
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+
+
+def release(run_dir) -> None:
+    """Give up this process's lock on run_dir (harness holds it for the process's life;
+    the tests train many runs in one process)."""
+    import harness
+
+    fd = harness._held_locks.pop(Path(run_dir).resolve(), None)
+    if fd is not None:
+        os.close(fd)
 
 
 def run_script(script: str, *args, check: bool = True) -> subprocess.CompletedProcess:

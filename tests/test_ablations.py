@@ -12,7 +12,14 @@ import math
 import numpy as np
 import pytest
 from gradcheck import assert_gradient_close, numerical_gradient
-from helpers import assert_one_line_error, interrupted_after, read_rows, run_module, run_script
+from helpers import (
+    assert_one_line_error,
+    interrupted_after,
+    read_rows,
+    release,
+    run_module,
+    run_script,
+)
 from hypothesis import assume, given
 from hypothesis import strategies as st
 from test_offpac_il import (
@@ -548,7 +555,7 @@ def test_each_ablation_runs_from_the_command_line_and_resumes(
             patch.setattr(offpac_il, "run_episode", interrupted_after(episodes))
             with pytest.raises(KeyboardInterrupt):
                 offpac_il.train(config, variant=ablations.variant_of(config))
-    harness.release(interrupted)
+    release(interrupted)
     counters = harness.load_arrays(interrupted / "checkpoint.npz")["counters"]
     saved = json.loads(str(counters))
     assert saved["episodes"] == episodes and 0 < saved["interactions"] < interactions[-1]

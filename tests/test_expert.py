@@ -19,6 +19,7 @@ import pytest
 
 import expert
 from expert import UserError
+from lab import shipping
 
 REPO_DIR = Path(expert.__file__).resolve().parent
 PENDULUM = "InvertedPendulum-v4"  # obs (x, theta, x', theta'), one force in [-3, 3]
@@ -316,7 +317,7 @@ def test_cli_has_no_training_commands():
 @pytest.fixture
 def pendulum_expert_file(tmp_path, pendulum_expert) -> Path:
     path = tmp_path / "pendulum-expert.npz"
-    pendulum_expert.save(path)
+    shipping.save_expert(pendulum_expert, path)
     return path
 
 

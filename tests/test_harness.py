@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from helpers import ROOT, assert_one_line_error, read_rows, run_script
+from helpers import ROOT, assert_one_line_error, read_rows, release, run_script
 from test_offpac_il import tiny_config
 
 import harness
@@ -622,14 +622,14 @@ def test_a_signal_asks_for_a_checkpoint_and_a_second_one_stops_at_once(capsys):
         harness.stop_if_requested()  # nothing asked yet
         os.kill(os.getpid(), signal.SIGTERM)
         time.sleep(0.01)  # the handler runs in the main thread, between bytecodes
-        assert clock.checkpoint_due() and harness.stop_requested()
+        assert clock.checkpoint_due()  # the signal asked for a checkpoint
         with pytest.raises(KeyboardInterrupt):
             harness.stop_if_requested()
         with pytest.raises(KeyboardInterrupt):
             os.kill(os.getpid(), signal.SIGINT)
             time.sleep(0.01)
     assert signal.getsignal(signal.SIGTERM) is before  # handlers restored
-    assert not clock.checkpoint_due() and not harness.stop_requested()  # request forgotten
+    assert not clock.checkpoint_due()  # request forgotten
     assert "stopping at the next checkpoint" in capsys.readouterr().err
 
 
@@ -791,7 +791,7 @@ def finished_run(tmp_path_factory, hopper_demos) -> Path:
     """A finished tiny learner run (300 interactions), made once for this module."""
     run_dir = tmp_path_factory.mktemp("finished") / "run"
     offpac_il.train(tiny_config(run_dir, hopper_demos))
-    harness.release(run_dir)
+    release(run_dir)
     return run_dir
 
 

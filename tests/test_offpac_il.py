@@ -649,8 +649,10 @@ def test_a_run_whose_networks_went_non_finite_stops_at_its_next_evaluation(
 
 
 def test_restore_gives_back_the_checkpoints_learner(tmp_path, hopper_demos):
+    from lab import experiments
+
     offpac_il.train(tiny_config(tmp_path / "run", hopper_demos))
-    _, _, _, learner, replay, progress = offpac_il.restore(tmp_path / "run")
+    _, _, _, learner, replay, progress = experiments.restored(tmp_path / "run")
     assert progress.interactions >= 300 and replay.size == progress.interactions
     saved = harness.load_arrays(tmp_path / "run" / "policy_final.npz")
     for name, value in learner.policy.state().items():
@@ -807,7 +809,7 @@ def test_resume_takes_the_saved_settings_and_a_new_budget(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------
-# lab/experiments.py's tools on a learner run. They read the run as offpac_il.restore
+# lab/experiments.py's tools on a learner run. They read the run as experiments.restored
 # gives it back.
 # ---------------------------------------------------------------------------------------
 
@@ -821,7 +823,7 @@ def test_restore_and_the_critic_probe(tmp_path, hopper_demos, monkeypatch):
     from lab import experiments
 
     offpac_il.train(tiny_config(tmp_path / "run", hopper_demos))
-    _, spaces, _, learner, _, _ = offpac_il.restore(tmp_path / "run")
+    _, spaces, _, learner, _, _ = experiments.restored(tmp_path / "run")
 
     def policy_action(observation):
         state = spaces.state(observation)[None]
@@ -863,7 +865,7 @@ def test_evaluate_plays_the_saved_policy_from_new_starts(tmp_path, hopper_demos)
     offpac_il.train(tiny_config(tmp_path / "run", hopper_demos, extra=["--policy-average", "0.05"]))
     rows = experiments.evaluate_policy(tmp_path / "run", "final", episodes=3, seed=7)
     assert rows == experiments.evaluate_policy(tmp_path / "run", "checkpoint", 3, seed=7)
-    _, spaces, _, learner, _, _ = offpac_il.restore(tmp_path / "run")
+    _, spaces, _, learner, _, _ = experiments.restored(tmp_path / "run")
     env, rng = expert.make_env("Hopper-v4"), np.random.default_rng(7)
     random_return, expert_return = expert.reference_returns("Hopper-v4")
     for i, row in enumerate(rows):
