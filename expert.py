@@ -44,8 +44,11 @@ import nets
 from harness import UserError  # re-exported: `from expert import UserError` keeps working
 
 REPO_DIR = Path(__file__).resolve().parent
-EXPERTS_DIR = REPO_DIR / "experts"
-DEMOS_DIR = REPO_DIR / "demos"
+# A checkout keeps experts/ beside this file; `pip install .` puts them under the prefix,
+# and demonstrations are then cached in the working directory.
+INSTALLED = not (REPO_DIR / "experts").is_dir()
+EXPERTS_DIR = Path(sys.prefix) / "share/offpac-il/experts" if INSTALLED else REPO_DIR / "experts"
+DEMOS_DIR = Path("demos") if INSTALLED else REPO_DIR / "demos"
 TABLE_PATH = EXPERTS_DIR / "table.json"
 
 # Sec. 5.1: expert trajectories are 1000 steps long; sparse sampling keeps 100 of each.

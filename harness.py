@@ -47,7 +47,7 @@ class UserError(Exception):
 # === Files, written atomically: a killed run keeps the previous file, never half a new one ===
 
 
-def _write_atomically(path, write) -> None:
+def write_atomically(path, write) -> None:
     """Call write(file) on a temporary file beside `path`, then rename it to `path`."""
     path = Path(path)
     if path.is_dir():
@@ -72,11 +72,11 @@ def _write_atomically(path, write) -> None:
 
 
 def save_arrays(path, arrays: dict[str, np.ndarray]) -> None:
-    _write_atomically(path, lambda f: np.savez(f, **arrays))
+    write_atomically(path, lambda f: np.savez(f, **arrays))
 
 
 def write_text(path, text: str) -> None:
-    _write_atomically(path, lambda f: f.write(text.encode()))
+    write_atomically(path, lambda f: f.write(text.encode()))
 
 
 def load_arrays(path) -> dict[str, np.ndarray]:

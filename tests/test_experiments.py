@@ -138,7 +138,7 @@ def test_sweep_rejects_two_specs_with_one_run_dir(tmp_path):
 
 
 def test_sweep_on_a_dask_local_cluster(tmp_path):
-    import distributed  # in requirements.txt: missing is a failure, not a skip
+    import distributed  # in the [lab] extra: missing is a failure, not a skip
 
     finishes = finishing_script(tmp_path)
     specs = [
