@@ -359,7 +359,7 @@ def restore_arrays(path, load: Callable[[], None]) -> None:
 
 def rounded(value):
     """Counts as they are, measurements to 5 significant digits."""
-    return value if isinstance(value, int) else float(f"{value:.5g}")
+    return value if isinstance(value, int | str) else float(f"{value:.5g}")
 
 
 def progress_csv(rows: list[dict], fields) -> str:

@@ -604,6 +604,8 @@ PROGRESS_FIELDS = (
 )
 # The averaged PN's evaluation, on the same episode seeds as PN's (--policy-average).
 AVERAGE_FIELDS = ("average_return_mean", "average_score", "average_falls")
+# The policy the run hands over (policy_average.npz, else policy_final.npz) and its score.
+HANDOVER_FIELDS = ("handover", "handover_score")
 SNAPSHOTS = "policies"  # the policy of each evaluation, named by its interactions
 
 
@@ -669,7 +671,9 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
     started = f"resumed {run_dir} at {progress.interactions} interactions" if resume else run_dir
     print(f"run directory: {started}", flush=True)
     fields = PROGRESS_FIELDS + variant.progress_fields
-    fields += AVERAGE_FIELDS if learner.average_policy is not None else ()
+    fields += (AVERAGE_FIELDS if learner.average_policy is not None else ()) + HANDOVER_FIELDS
+    handover = "policy_average.npz" if learner.average_policy is not None else "policy_final.npz"
+    print(f"hands over: {run_dir / handover}", flush=True)
     clock = harness.Clock(progress, config.checkpoint_every, config.log_every)
 
     def check_finite() -> None:  # before acting, and before a checkpoint overwrites the last
@@ -702,6 +706,10 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
                 average_policy = learner.average_policy.state("policy")
                 harness.save_arrays(run_dir / "policy_average.npz", average_policy)
             score = expert.normalized_score(float(returns.mean()), references)
+            measured |= {
+                "handover": handover,
+                "handover_score": measured.get("average_score", score),
+            }
             clock.tick()
             row = progress.record(returns, score, measured, fields)
             policy = learner.policy.state("policy")

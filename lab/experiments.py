@@ -550,7 +550,8 @@ def split_runnable(specs: Iterable[RunSpec]) -> tuple[list[RunSpec], dict[str, l
 
 
 def read_progress(run_dir) -> dict[str, np.ndarray]:
-    """progress.csv as {column: float array}; empty cells become NaN."""
+    """progress.csv as {column: float array}; empty cells become NaN, and a column of
+    names (handover) stays an array of strings."""
     try:
         with open(Path(run_dir) / "progress.csv") as f:
             rows = list(csv.DictReader(f))
@@ -558,10 +559,14 @@ def read_progress(run_dir) -> dict[str, np.ndarray]:
         raise UserError(f"{run_dir}: no readable progress.csv ({error.strerror})") from None
     if not rows:
         return {}
-    return {
-        key: np.array([float(r[key]) if r[key] not in ("", None) else np.nan for r in rows])
-        for key in rows[0]
-    }
+
+    def column(key: str) -> np.ndarray:
+        try:
+            return np.array([float(r[key]) if r[key] not in ("", None) else np.nan for r in rows])
+        except ValueError:
+            return np.array([r[key] for r in rows])
+
+    return {key: column(key) for key in rows[0]}
 
 
 def need_columns(progress: dict[str, np.ndarray], run_dir, *columns: str) -> None:

@@ -525,9 +525,11 @@ def test_each_ablation_runs_from_the_command_line_and_resumes(
     assert all(n >= 100 * i for i, n in enumerate(interactions))  # one row per 100 or more
     variant = ablations.variant_of(config)
     fields = (*offpac_il.PROGRESS_FIELDS, *variant.progress_fields, *offpac_il.AVERAGE_FIELDS)
+    fields += offpac_il.HANDOVER_FIELDS
     assert list(rows[0]) == [f for f in fields if f != "wall_seconds"]
     for row in rows[1:]:  # every column filled and finite after the first updates
         assert row["updates"] == row["interactions"]
+        assert row.pop("handover") == "policy_average.npz"
         assert all(math.isfinite(float(v)) for v in row.values()), row
     last = rows[-1]
     checkpoint = harness.load_arrays(whole / "checkpoint.npz")

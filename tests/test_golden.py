@@ -27,7 +27,9 @@ def test_the_default_learner_reproduces_the_golden_run(tmp_path):
     run_script("offpac_il.py", *COMMAND, "--run-dir", run_dir)
     golden, rows = read_rows(GOLDEN), read_rows(run_dir / "progress.csv")
     assert [int(row["interactions"]) for row in golden] == [0, 301, 601]
-    assert list(rows[0]) == list(golden[0])  # the same columns, in the same order
+    # The golden columns, in the same order; columns added since (handover, handover_score)
+    # come after them and are checked by their own tests.
+    assert list(rows[0])[: len(golden[0])] == list(golden[0])
     for expected, row in zip(golden, rows, strict=True):
         differing = {k: (expected[k], row[k]) for k in expected if expected[k] != row[k]}
         assert not differing, f"at {expected['interactions']} interactions: {differing}"

@@ -584,9 +584,8 @@ def test_command_line_run_writes_its_files(tmp_path, hopper_demos):
     rows = read_progress(run_dir)
     assert all(int(r["interactions"]) >= 100 * i for i, r in enumerate(rows))
     assert int(rows[-1]["interactions"]) >= 300
-    assert list(rows[0]) == [
-        f for f in (*offpac_il.PROGRESS_FIELDS, *offpac_il.AVERAGE_FIELDS) if f != "wall_seconds"
-    ]
+    fields = (*offpac_il.PROGRESS_FIELDS, *offpac_il.AVERAGE_FIELDS, *offpac_il.HANDOVER_FIELDS)
+    assert list(rows[0]) == [f for f in fields if f != "wall_seconds"]
     assert all(np.isfinite(float(r["normalized_score"])) for r in rows)
     assert "eval" in result.stdout
     snapshots = sorted((run_dir / offpac_il.SNAPSHOTS).glob("*.npz"))
@@ -673,9 +672,17 @@ def test_policy_average_is_evaluated_beside_pn_and_changes_nothing_else(
     averaged = tmp_path / "averaged"
     offpac_il.train(tiny_config(averaged, hopper_demos, extra=["--policy-average", "0.05"]))
     rows, plain_rows = read_progress(averaged), read_progress(plain)
-    assert [
-        {k: v for k, v in row.items() if k not in offpac_il.AVERAGE_FIELDS} for row in rows
-    ] == plain_rows
+    own = offpac_il.AVERAGE_FIELDS + offpac_il.HANDOVER_FIELDS
+    assert [{k: v for k, v in row.items() if k not in own} for row in rows] == [
+        {k: v for k, v in row.items() if k not in own} for row in plain_rows
+    ]
+    # The hand-over column names the policy a user gets, and scores it.
+    assert {(r["handover"], r["handover_score"]) for r in rows} == {
+        ("policy_average.npz", r["average_score"]) for r in rows
+    }
+    assert {r["handover"] for r in plain_rows} == {"policy_final.npz"}
+    for r in plain_rows:  # normalized_score is rounded to 4 decimals, measurements to 5 digits
+        assert abs(float(r["handover_score"]) - float(r["normalized_score"])) <= 5e-5
     assert not (plain / "policy_average.npz").exists()
     # At the start the average is PN itself: the same episodes, the same return.
     assert rows[0]["average_return_mean"] == rows[0]["eval_return_mean"]
