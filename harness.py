@@ -21,6 +21,7 @@ import csv
 import dataclasses
 import errno
 import fcntl
+import functools
 import inspect
 import io
 import json
@@ -96,6 +97,7 @@ def load_arrays(path) -> dict[str, np.ndarray]:
 # === The command line, made from a hyperparameter dataclass (docstrings are the help) ===
 
 
+@functools.cache  # parsed once: CPython 3.11's ast.parse may fail beside other threads
 def field_docstrings(cls) -> dict[str, str]:
     """The string literal under each dataclass field."""
     body = ast.parse(inspect.getsource(cls)).body[0].body
