@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import errno
 import json
 import re
 import subprocess
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from gradcheck import assert_gradient_close, numerical_gradient
-from helpers import ROOT, interrupted_after, read_rows, run_script
+from helpers import ROOT, interrupted_after, read_rows, release, run_script
 from hypothesis import assume, given
 from hypothesis import strategies as st
 
@@ -621,6 +622,40 @@ def test_resume_reproduces_an_uninterrupted_run(tmp_path, hopper_demos, monkeypa
     assert read_progress(same_seed) == whole
     assert read_progress(other_seed) != whole
     assert read_progress(interrupted) == whole
+
+
+def test_a_disk_that_fills_mid_run_is_one_line_and_the_run_resumes_exactly(
+    tmp_path, hopper_demos, monkeypatch, capsys
+):
+    """The third checkpoint write fails with ENOSPC, as on a full disk, halfway through
+    the file: one line, exit status 2, the second checkpoint kept whole and no temporary
+    left; freed, --resume ends with the rows of a run that never stopped."""
+    args = [*TINY_RUN, "--demos", str(hopper_demos)]
+    whole = tmp_path / "whole"
+    run_cli(*args, "--run-dir", whole)
+    run_dir = tmp_path / "full"
+    real_savez, checkpoints = np.savez, []
+
+    def savez(file, **arrays):
+        if "rows" in arrays:  # a checkpoint, not a policy
+            checkpoints.append(json.loads(str(arrays["counters"]))["interactions"])
+            if len(checkpoints) == 3:
+                file.write(b"half a checkpoint")
+                raise OSError(errno.ENOSPC, "No space left on device", str(file.name))
+        return real_savez(file, **arrays)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(np, "savez", savez)
+        status = offpac_il.main([*args, "--run-dir", str(run_dir)])
+    release(run_dir)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1, err
+    assert err[0].startswith("error: disk full writing") and "--resume" in err[0]
+    kept = json.loads(str(harness.load_arrays(run_dir / "checkpoint.npz")["counters"]))
+    assert kept["interactions"] == checkpoints[1] < checkpoints[2]
+    assert not [p.name for p in run_dir.iterdir() if p.name.endswith(".tmp")]
+    run_cli("--resume", run_dir)
+    assert read_progress(run_dir) == read_progress(whole)
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")  # NaN through the networks
