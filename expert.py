@@ -96,8 +96,9 @@ def make_env(env_id: str, **kwargs) -> gym.Env:
         warnings.filterwarnings("ignore", message=".*is out of date.*")
         try:
             env = gym.make(env_id, **kwargs)
-        except gym.error.Error as error:
-            raise UserError(f"cannot make environment {env_id!r}: {error}") from None
+        except (gym.error.Error, ImportError, TypeError) as error:  # unknown, moved, bad kwargs
+            first_line = str(error).splitlines()[0] if str(error) else type(error).__name__
+            raise UserError(f"cannot make environment {env_id!r}: {first_line}") from None
     observation_space, action_space = env.observation_space, env.action_space
     if not (isinstance(observation_space, gym.spaces.Box) and len(observation_space.shape) == 1):
         env.close()

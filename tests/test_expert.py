@@ -269,6 +269,13 @@ def test_make_env_refuses_discrete_and_unknown_envs():
         expert.make_env("CartPole-v1")
     with pytest.raises(UserError, match="NoSuchTask-v0"):
         expert.make_env("NoSuchTask-v0")
+    # A version gymnasium moved out (ImportError), a module that is missing, bad kwargs.
+    with pytest.raises(UserError, match="'Hopper-v3'.*gymnasium-robotics"):
+        expert.make_env("Hopper-v3")
+    with pytest.raises(UserError, match="No module named 'no_such_module'"):
+        expert.make_env("no_such_module:Task-v0")
+    with pytest.raises(UserError, match="unexpected keyword argument 'no_such_kwarg'"):
+        expert.make_env("Hopper-v4", no_such_kwarg=1)
     env = expert.make_env(PENDULUM)
     assert expert.env_dimensions(env) == (4, 1)
     env.close()
