@@ -69,11 +69,7 @@ def _quiet_mujoco_compiler():
     gymnasium's HalfCheetah-v4 asset uses that attribute, and MuJoCo 3 writes the warning to
     stderr and to MUJOCO_LOG.TXT in the working directory on every make. Other MuJoCo
     warnings are passed on as Python warnings."""
-    try:
-        import mujoco
-    except ImportError:
-        yield
-        return
+    import mujoco  # here, not at the top: MUJOCO_GL is read on import (lab/render.py sets it)
 
     def forward(message: str) -> None:
         if "settotalmass" not in message:
@@ -154,9 +150,11 @@ class ExpertPolicy:
     obs_std: np.ndarray | None = None  # sqrt(diag Sigma), (dim S,)
     network: nets.MLP | None = None  # SAC: state -> (mean, log std), (dim S) -> (2 dim A)
     metadata: dict = dataclasses.field(default_factory=dict)
+    serves: str | None = None  # a -v5 task it acts on through as_trained_observation
 
     def act(self, observation: np.ndarray) -> np.ndarray:
         """Deterministic action for one state, within the action bounds."""
+        observation = as_trained_observation(self.serves, observation)
         if self.network is None:
             normalised = (np.asarray(observation, dtype=np.float64) - self.obs_mean) / self.obs_std
             return np.clip(self.weights @ normalised, self.action_low, self.action_high)  # (dim A,)
@@ -165,13 +163,24 @@ class ExpertPolicy:
         return tanh_to_bounds(np.tanh(mean).astype(np.float64), self.action_low, self.action_high)
 
 
-# gymnasium's -v5 tasks that a -v4 expert serves (see serving_expert_path).
-SERVED_BY = {f"{task}-v5": f"{task}-v4" for task in ("Hopper", "HalfCheetah", "Walker2d")}
-# -v5 tasks whose observations the -v4 experts cannot read.
-NOT_SERVED = {
-    "Ant-v5": "its 105-dim observations hold contact forces; the Ant-v4 expert reads 27 dims",
-    "Humanoid-v5": "its observations have 348 dims; the Humanoid-v4 expert reads 376",
-}
+# gymnasium's -v5 tasks that a -v4 expert serves: the dynamics are the same, and each -v5
+# observation holds the -v4 one's quantities. Hopper, HalfCheetah, Walker2d: the same
+# layout. Ant-v5: Ant-v4's 27 dims, then contact forces. Humanoid-v5: Humanoid-v4's 376
+# dims without the world body's inertia, velocity and external force and the free joint's
+# actuator forces (HUMANOID_V5_COLUMNS), all always 0 (tests/test_expert.py checks both).
+SERVED_BY = {f"{t}-v5": f"{t}-v4" for t in ("Hopper", "HalfCheetah", "Walker2d", "Ant", "Humanoid")}
+HUMANOID_V5_COLUMNS = np.r_[0:45, 55:185, 191:269, 275:292, 298:376]  # in Humanoid-v4's
+
+
+def as_trained_observation(serves: str | None, observation: np.ndarray) -> np.ndarray:
+    """A -v5 observation as the -v4 expert serving that task was trained to read it."""
+    if serves == "Ant-v5":
+        return observation[:27]
+    if serves == "Humanoid-v5":
+        full = np.zeros(376, np.asarray(observation).dtype)
+        full[HUMANOID_V5_COLUMNS] = observation
+        return full
+    return observation
 
 
 def default_expert_path(env_id: str) -> Path:
@@ -182,11 +191,9 @@ def default_expert_path(env_id: str) -> Path:
 
 def serving_expert_path(env_id: str) -> Path:
     """The expert file that serves ``env_id``: its own if one was trained, else, for the
-    -v5 tasks of SERVED_BY, the -v4 expert's. Why it may: on Hopper, HalfCheetah and
-    Walker2d, -v5 observations hold the same quantities in the same order as -v4 (11, 17
-    and 17 dims), and the -v4 experts earn the same returns on both versions (10 seeded
-    episodes, Table 1: 3395 on both, 4171 on both, 4362 on -v5 against 4346 on -v4). Not so
-    on Ant and Humanoid (NOT_SERVED), whose -v5 observations changed."""
+    -v5 tasks of SERVED_BY, the -v4 expert's. Table 1 measures it there: Hopper 3395,
+    HalfCheetah 4171, Walker2d 4362, Ant 4931, Humanoid 5246 (-v4: 3395, 4171, 4346, 4932,
+    5474; Humanoid-v5's reward differs, not its dynamics)."""
     own = default_expert_path(env_id)
     if own.exists() or env_id not in SERVED_BY:
         return own
@@ -197,9 +204,6 @@ def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
     """Load the expert that serves ``env_id`` (or the one at ``path``), checking it fits. A
     file without a ``kind`` is an ARS linear policy (every file written before SAC)."""
     path = Path(path) if path is not None else serving_expert_path(env_id)
-    if not path.exists() and env_id in NOT_SERVED:
-        why = f"no expert serves {env_id} yet: {NOT_SERVED[env_id]}"
-        raise UserError(f"{why}; give --demos (a file or minari:<dataset id>)")
     if not path.exists():
         raise UserError(
             f"no expert for {env_id} at {path}; train one with "
@@ -225,6 +229,7 @@ def load_expert(env_id: str, path: Path | None = None) -> ExpertPolicy:
         raise UserError(f"{path}: not a valid expert file ({error})") from None
     if policy.env_id not in (env_id, SERVED_BY.get(env_id)):
         raise UserError(f"{path}: expert was trained on {policy.env_id}, not {env_id}")
+    policy.serves = env_id if policy.env_id != env_id else None
     if policy.network is None:
         dim_a, dim_s = policy.weights.shape
         consistent = policy.obs_mean.shape == (dim_s,)
