@@ -163,24 +163,25 @@ class ExpertPolicy:
         return tanh_to_bounds(np.tanh(mean).astype(np.float64), self.action_low, self.action_high)
 
 
-# gymnasium's -v5 tasks that a -v4 expert serves: the dynamics are the same, and each -v5
-# observation holds the -v4 one's quantities. Hopper, HalfCheetah, Walker2d: the same
-# layout. Ant-v5: Ant-v4's 27 dims, then contact forces. Humanoid-v5: Humanoid-v4's 376
-# dims without the world body's inertia, velocity and external force and the free joint's
-# actuator forces (HUMANOID_V5_COLUMNS), all always 0 (tests/test_expert.py checks both).
+# -v5 tasks a -v4 expert serves: same dynamics, and the -v5 observation holds the -v4 one,
+# in the same layout or as in V4_LAYOUT (-v4 dims, where the leading -v5 columns go; the
+# rest always 0): Ant-v5 appends contact forces; Humanoid-v5 drops the world body's and the
+# free joint's always-0 columns (tests/test_expert.py checks both).
 SERVED_BY = {f"{t}-v5": f"{t}-v4" for t in ("Hopper", "HalfCheetah", "Walker2d", "Ant", "Humanoid")}
-HUMANOID_V5_COLUMNS = np.r_[0:45, 55:185, 191:269, 275:292, 298:376]  # in Humanoid-v4's
+V4_LAYOUT = {
+    "Ant-v5": (27, np.arange(27)),
+    "Humanoid-v5": (376, np.r_[0:45, 55:185, 191:269, 275:292, 298:376]),
+}
 
 
 def as_trained_observation(serves: str | None, observation: np.ndarray) -> np.ndarray:
     """A -v5 observation as the -v4 expert serving that task was trained to read it."""
-    if serves == "Ant-v5":
-        return observation[:27]
-    if serves == "Humanoid-v5":
-        full = np.zeros(376, np.asarray(observation).dtype)
-        full[HUMANOID_V5_COLUMNS] = observation
-        return full
-    return observation
+    if serves not in V4_LAYOUT:
+        return observation
+    dim, columns = V4_LAYOUT[serves]
+    trained = np.zeros(dim, np.asarray(observation).dtype)
+    trained[columns] = observation[: len(columns)]
+    return trained
 
 
 def default_expert_path(env_id: str) -> Path:

@@ -158,9 +158,9 @@ def critic_loss_and_grads(critic: nets.MLP, batch: Triplets, t: np.ndarray, n_ex
 
     D_JS(P_nu(.|s, a) || Bern(t)) with P_nu(pi_E|s, a) = q_nu(s, a) (Eq. 12), averaged
     over the expert rows and over the replay rows, the two averages added. With t frozen,
-    its gradient in the critic's logit x (nets.js_divergence_grad; m = (p + t)/2) is
-    backpropagated through QN. batch: n_expert expert rows, then as many replay rows;
-    t: (rows, 1). Returns (loss, grads, critic cache).
+    dD_JS/dx = 1/2 p(1-p)(logit p - logit m), m = (p + t)/2, in the critic's logit x
+    (nets.js_divergence_grad), is backpropagated through QN. batch: n_expert expert rows,
+    then as many replay rows; t: (rows, 1). Returns (loss, grads, critic cache).
     """
     _, cache = critic.forward((batch.states, batch.actions))
     x = cache.logits  # (2n, 1): p = q_nu(s, a) = sigmoid(x), Eq. (10)

@@ -549,9 +549,12 @@ def split_runnable(specs: Iterable[RunSpec]) -> tuple[list[RunSpec], dict[str, l
 # ----------------------------------------------------------------------------------------
 
 
+TEXT_COLUMNS = ("handover",)
+
+
 def read_progress(run_dir) -> dict[str, np.ndarray]:
-    """progress.csv as {column: float array}; empty cells become NaN, and a column of
-    names (handover) stays an array of strings."""
+    """progress.csv as {column: float array}, empty cells NaN; TEXT_COLUMNS (the file a
+    run hands over) as arrays of strings."""
     try:
         with open(Path(run_dir) / "progress.csv") as f:
             rows = list(csv.DictReader(f))
@@ -561,10 +564,9 @@ def read_progress(run_dir) -> dict[str, np.ndarray]:
         return {}
 
     def column(key: str) -> np.ndarray:
-        try:
-            return np.array([float(r[key]) if r[key] not in ("", None) else np.nan for r in rows])
-        except ValueError:
+        if key in TEXT_COLUMNS:
             return np.array([r[key] for r in rows])
+        return np.array([float(r[key]) if r[key] not in ("", None) else np.nan for r in rows])
 
     return {key: column(key) for key in rows[0]}
 
@@ -1331,8 +1333,9 @@ def policy_file(run_dir, policy: str) -> Path:
     )
 
 
-def policy_player(run_dir):
-    """play(policy, episodes, seed): rows of a learner run's saved policy (see evaluate_policy)."""
+def policy_player(run_dir, env=None):
+    """play(policy, episodes, seed): rows of a learner run's saved policy (see
+    evaluate_policy), on `env` (default: a new one of the run's task)."""
     import expert
     import offpac_il
     from lab import ablations
@@ -1340,9 +1343,9 @@ def policy_player(run_dir):
     run_dir = Path(run_dir)
     saved = read_config(run_dir)
     if "method" in saved:
-        raise UserError(f"{run_dir} is a {saved['method']} run; evaluate reads learner runs")
+        raise UserError(f"{run_dir} is a {saved['method']} run, not a learner run")
     config = learner_config({**saved, "run_dir": str(run_dir)})
-    env = expert.make_env(config.env)
+    env = env if env is not None else expert.make_env(config.env)
     rng = np.random.default_rng(config.seed)
     spaces, _, learner, _, demos = offpac_il.prepare(config, env, rng, ablations.variant_of(config))
     references = expert.references_or_nan(config.env, demos)

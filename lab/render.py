@@ -18,6 +18,7 @@ import os
 import sys
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 
 import harness
@@ -29,15 +30,16 @@ RENDER_PACKAGES = (
 )
 
 
-def render_env(env_id: str, width: int, height: int):
-    """The task with offscreen rendering, or one UserError naming the system package."""
+def render_env(env_id: str, width: int, height: int, **kwargs):
+    """The task with offscreen rendering (kwargs: gym.make's), or one UserError naming the
+    system package it needs."""
     import expert
 
     env = None
     try:
         import mujoco  # it loads the GL back end MUJOCO_GL names
 
-        env = expert.make_env(env_id, render_mode="rgb_array", width=width, height=height)
+        env = expert.make_env(env_id, render_mode="rgb_array", width=width, height=height, **kwargs)
         env.reset(seed=0)
         env.render()
         # gymnasium's -v4 cameras name a body to track but stay free, so a runner leaves
@@ -58,52 +60,26 @@ def render_env(env_id: str, width: int, height: int):
     return env
 
 
-def learner_actor(run_dir: Path, policy: str, env):
-    """act(observation, rng) for a learner run's saved policy, in the run's own units
-    (its state standardisation comes from its demonstrations)."""
-    import offpac_il
-    from lab import ablations, experiments
+class FrameRecorder(gym.Wrapper):
+    """Keeps the rendered frame after each reset and after every `every`-th step, so that
+    the project's own rollout loops (offpac_il.run_episode for a learner's policy,
+    lab.table.run_episode for the expert) act in the GIF as they act anywhere else."""
 
-    saved = experiments.read_config(run_dir)
-    if "method" in saved:
-        raise UserError(f"{run_dir} is a {saved['method']} run; render reads learner runs")
-    config = experiments.learner_config({**saved, "run_dir": str(run_dir)})
-    rng = np.random.default_rng(config.seed)
-    spaces, _, learner, _, _ = offpac_il.prepare(config, env, rng, ablations.variant_of(config))
-    path = experiments.policy_file(run_dir, policy)
-    arrays = harness.load_arrays(path)
-    harness.restore_arrays(path, lambda: learner.policy.load_state(arrays, "policy"))
+    def __init__(self, env: gym.Env, every: int):
+        super().__init__(env)
+        self.every, self.frames, self.steps = every, [], 0
 
-    def act(observation: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        state = spaces.state(observation)[None]
-        noise = rng.standard_normal((1, learner.policy.noise_dim), np.float32)
-        action = learner.policy.act(state, noise)[0]
-        return spaces.to_env_action(np.clip(action, -1.0, 1.0))
+    def reset(self, **kwargs):
+        result = self.env.reset(**kwargs)
+        self.frames, self.steps = [self.env.render().copy()], 0  # the renderer reuses its buffer
+        return result
 
-    return config.env, act
-
-
-def expert_actor(env_id: str):
-    import expert
-
-    policy = expert.load_expert(env_id)
-    return lambda observation, rng: policy.act(observation)
-
-
-def play(env, act, seed: int, steps: int, every: int) -> tuple[list[np.ndarray], float]:
-    """Frames (every `every`-th step, the first included) and the return of one episode
-    of at most `steps` steps from reset seed `seed`. A fallen player's last frame is held."""
-    rng = np.random.default_rng(seed)
-    observation, _ = env.reset(seed=seed)
-    frames, total = [env.render().copy()], 0.0
-    for step in range(1, steps + 1):
-        observation, reward, terminated, truncated, _ = env.step(act(observation, rng))
-        total += float(reward)
-        if step % every == 0:
-            frames.append(env.render().copy())  # the renderer may reuse its buffer
-        if terminated or truncated:
-            break
-    return frames, total
+    def step(self, action):
+        result = self.env.step(action)
+        self.steps += 1
+        if self.steps % self.every == 0:
+            self.frames.append(self.env.render().copy())
+        return result
 
 
 def side_by_side(*players: list[np.ndarray]) -> list[np.ndarray]:
@@ -137,17 +113,22 @@ def write_gif(path, frames: list[np.ndarray], fps: float) -> None:
 
 
 def render(args) -> None:
+    from lab import experiments, table
+
     run_dir = Path(args.run_dir)
     env_id = str(harness.read_config(run_dir).get("env", ""))  # a run at all, before anything
-    with render_env(env_id, args.width, args.height) as env:
-        _, act = learner_actor(run_dir, args.policy, env)
-        frames, learner_return = play(env, act, args.seed, args.steps, args.every)
-        line = f"{args.policy} policy: return {learner_return:.1f}"
+    env = render_env(env_id, args.width, args.height, max_episode_steps=args.steps)
+    with FrameRecorder(env, args.every) as recorder:
+        play = experiments.policy_player(run_dir, recorder)
+        (row,) = play(experiments.policy_file(run_dir, args.policy), 1, args.seed)
+        frames, line = recorder.frames, f"{args.policy} policy: return {row['return']:.1f}"
         if args.beside_expert:
-            expert_frames, expert_return = play(
-                env, expert_actor(env_id), args.seed, args.steps, args.every
+            import expert
+
+            expert_return, _ = table.run_episode(
+                recorder, expert.load_expert(env_id).act, args.seed
             )
-            frames = side_by_side(frames, expert_frames)
+            frames = side_by_side(frames, recorder.frames)
             line += f"; expert (right): return {expert_return:.1f}"
         fps = 1.0 / (env.unwrapped.dt * args.every)  # real time
     write_gif(args.out, frames, fps)

@@ -79,5 +79,5 @@ def test_refuses_what_is_not_a_learner_run(tmp_path):
     assert_one_line_error(run_module("lab.render", tmp_path, check=False), "holds no run")
     gail = ROOT / "results" / "hopper-gail-seed0"
     result = run_module("lab.render", gail, "--out", tmp_path / "x.gif", check=False)
-    assert_one_line_error(result, "gail run", "learner runs")
+    assert_one_line_error(result, "gail run", "not a learner run")
     assert not (tmp_path / "x.gif").exists()
