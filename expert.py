@@ -104,8 +104,7 @@ def make_env(env_id: str, **kwargs) -> gym.Env:
     if not (
         isinstance(action_space, gym.spaces.Box)
         and len(action_space.shape) == 1
-        and np.all(np.isfinite(action_space.low))
-        and np.all(np.isfinite(action_space.high))
+        and np.isfinite([action_space.low, action_space.high]).all()
     ):
         env.close()
         raise UserError(
@@ -113,6 +112,34 @@ def make_env(env_id: str, **kwargs) -> gym.Env:
             f"{env_id} has {action_space}"
         )
     return env
+
+
+def simulator_states(env: gym.Env, observations: np.ndarray) -> list[tuple]:
+    """The simulator's (qpos, qvel) for each observation of a MuJoCo locomotion task. Its
+    observation starts with qpos less the k = 1 (x) or 2 (x, y) coordinates that it leaves
+    out, then qvel; those k are set to 0, as the dynamics and reward do not depend on them."""
+    model = getattr(env.unwrapped, "model", None)
+    for k in (1, 2) if model is not None else ():
+        width = model.nq - k + model.nv
+        if width > observations.shape[1]:
+            continue
+        left_out = np.zeros((len(observations), k))
+        qpos = np.concatenate([left_out, observations[:, : model.nq - k]], axis=1)
+        qvel = observations[:, model.nq - k : width].astype(np.float64)
+        states = list(zip(qpos, qvel, strict=True))
+        if np.allclose(reset_to(env, 0, states[0])[:width], observations[0, :width], atol=1e-4):
+            return states
+    raise UserError(f"--demo-starts: cannot set {env.spec.id}'s simulator to a demonstrated state")
+
+
+def reset_to(env: gym.Env, seed: int, start: tuple | None = None) -> np.ndarray:
+    """The first observation: env.reset(seed=seed), then the simulator set to `start`'s
+    (qpos, qvel) if given."""
+    observation, _ = env.reset(seed=seed)
+    if start is None:
+        return observation
+    env.unwrapped.set_state(*start)
+    return env.unwrapped._get_obs()  # the task's own observation of the state just set
 
 
 def env_dimensions(env: gym.Env) -> tuple[int, int]:
@@ -185,16 +212,13 @@ def as_trained_observation(serves: str | None, observation: np.ndarray) -> np.nd
 
 
 def default_expert_path(env_id: str) -> Path:
-    """``<repo>/experts/<env_id>.npz`` (found from this file, not from the working
-    directory): where the expert trained for ``env_id`` is written."""
+    """Where the expert trained for ``env_id`` is written: ``EXPERTS_DIR/<env_id>.npz``."""
     return EXPERTS_DIR / f"{env_id}.npz"
 
 
 def serving_expert_path(env_id: str) -> Path:
     """The expert file that serves ``env_id``: its own if one was trained, else, for the
-    -v5 tasks of SERVED_BY, the -v4 expert's. Table 1 measures it there: Hopper 3395,
-    HalfCheetah 4171, Walker2d 4362, Ant 4931, Humanoid 5246 (-v4: 3395, 4171, 4346, 4932,
-    5474; Humanoid-v5's reward differs, not its dynamics)."""
+    -v5 tasks of SERVED_BY, the -v4 expert's (Table 1 has its return on each of them)."""
     own = default_expert_path(env_id)
     if own.exists() or env_id not in SERVED_BY:
         return own
@@ -533,9 +557,8 @@ def import_minari(
 
     Minari stores each episode as observations (T+1, dim S), actions (T, dim A) and
     terminations (T,); the triplets are (obs[t], act[t], obs[t+1]) with terminal = terminations[t].
-    Episodes of any length are kept (the file's returns record how good they were), the
-    first `trajectories` of them. The dataset's reference returns (ref_min_score and
-    ref_max_score of its metadata), where it has them, go into the file under those names.
+    Episodes of any length are kept (the file's returns record how good they were), with
+    the dataset's reference returns (ref_min_score, ref_max_score) where its metadata has them.
     """
     try:
         import minari

@@ -174,8 +174,7 @@ def check_choices(config, choices: dict[str, tuple[str, ...]]) -> None:
 
 
 def check_finite(arrays: dict[str, np.ndarray], when: str) -> None:
-    """Stop a run whose numbers went non-finite, naming what and when; the last
-    checkpoint, taken before, holds the last finite ones."""
+    """Stop a run whose numbers went non-finite; its last checkpoint holds finite ones."""
     for name, values in arrays.items():
         if not np.isfinite(values).all():
             raise UserError(f"{name} became non-finite {when}; the last checkpoint is kept")
@@ -262,10 +261,9 @@ def _lock(run_dir: Path) -> None:
 
 
 def open_run_dir(run_dir, resume: bool) -> Path:
-    """Check, create and lock a run directory: a fresh run refuses one that holds a
-    checkpoint, a resume needs config.json, progress.csv and checkpoint.npz. The lock comes
-    first, so a second process on the directory (started at the same instant, or a
-    --resume of a live run) stops here with one line, before it writes anything."""
+    """Check, create and lock a run directory: a fresh run refuses one with a checkpoint, a
+    resume needs all three files. The lock comes first, so a second process (started at the
+    same instant, or a --resume of a live run) stops here with one line, before any write."""
     run_dir = Path(run_dir)
     if run_dir.exists() and not run_dir.is_dir():
         raise UserError(f"--run-dir {run_dir} is a file, not a directory")
@@ -304,10 +302,9 @@ def read_config(run_dir) -> dict:
 
 
 def resumed_settings(saved: dict, given: dict, may_change: tuple[str, ...]) -> dict:
-    """A resumed run's settings: the saved ones, with the flags given on the command line
-    that a resume may change (`may_change`, such as the budget). Any other flag given
-    with a value other than the saved one is refused: silently ignoring it would run
-    something the user did not ask for."""
+    """A resumed run's settings: the saved ones, with the given flags that a resume may
+    change (`may_change`, such as the budget). Any other flag given with a value other than
+    the saved one is refused: ignoring it would run something the user did not ask for."""
     for name, value in given.items():
         value = list(value) if isinstance(value, tuple) else value
         if name in may_change or saved.get(name) == value:
@@ -333,10 +330,9 @@ def save_checkpoint(run_dir, arrays: dict[str, np.ndarray], rng, progress, field
 
 
 def load_checkpoint(run_dir, rng, load: Callable[[dict], None], progress_class=None):
-    """Restore `rng` in place, call load(arrays) to copy the checkpoint's arrays into the
-    networks and buffers, and return the progress (`progress_class`, by default Progress)
-    with the checkpoint's rows, which a resumed run's progress.csv is rewritten from. A
-    truncated, corrupted or foreign file is a UserError naming it."""
+    """Restore `rng` in place, call load(arrays) to fill the networks and buffers, and
+    return the progress (`progress_class`, by default Progress) with the checkpoint's rows,
+    which a resumed run's progress.csv is rewritten from. A bad file is a UserError."""
     path = Path(run_dir) / CHECKPOINT
     arrays = load_arrays(path)
     try:
@@ -348,15 +344,6 @@ def load_checkpoint(run_dir, rng, load: Callable[[dict], None], progress_class=N
         return (progress_class or Progress)(**counters, rows=rows)
     except (KeyError, ValueError, TypeError) as error:
         raise UserError(f"{path}: not a checkpoint of this run or version ({error})") from None
-
-
-def restore_arrays(path, load: Callable[[], None]) -> None:
-    """Run `load()` (copying a file's arrays into networks); a missing key or a wrong
-    shape means the file is from another version or another run."""
-    try:
-        load()
-    except (KeyError, ValueError) as error:
-        raise UserError(f"{path}: does not fit this run ({error})") from None
 
 
 def rounded(value):
@@ -398,9 +385,8 @@ class Progress:
         return count >= self.eval_rounds * every or count >= total
 
     def record(self, returns: np.ndarray, score: float, measured: dict, fields) -> dict:
-        """Append an evaluation's row: the counters, the evaluation's mean return, its
-        std and normalised score, the mean training return since the last row, and the
-        `measured` values of `fields` ("" where a value does not exist yet)."""
+        """Append an evaluation's row: the counters, the evaluation's statistics, the mean
+        training return since the last row and `measured`'s values of `fields` ("": none)."""
         self.eval_rounds += 1
         recent = self.recent_returns
         row = {
@@ -463,18 +449,18 @@ _stop = threading.Event()
 
 
 @contextlib.contextmanager
-def stop_at_next_checkpoint():
+def stop_at_next_checkpoint(at_once: bool = False):
     """While active, SIGINT (Ctrl-C) and SIGTERM (`kill`) ask the training loop to stop at
     its next checkpoint point: the loop sees `Clock.checkpoint_due`, writes its checkpoint and
     raises KeyboardInterrupt (`stop_if_requested`), so nothing since the last periodic
-    checkpoint is lost. A second signal stops at once. A signal the process was started
-    to ignore stays ignored (a shell's `cmd &` ignores SIGINT); outside the main thread
-    nothing is installed."""
+    checkpoint is lost. A second signal stops at once, as does the first one with `at_once`
+    (a command without checkpoints). A signal the process was started to ignore stays
+    ignored (a shell's `cmd &` ignores SIGINT); outside the main thread nothing is installed."""
     _stop.clear()
     installed = {}
 
     def request(signum, frame):
-        if _stop.is_set():
+        if _stop.is_set() or at_once:
             raise KeyboardInterrupt
         _stop.set()
         print("stopping at the next checkpoint (signal again to stop at once)", file=sys.stderr)
@@ -497,21 +483,21 @@ def stop_if_requested() -> None:
         raise KeyboardInterrupt
 
 
-def run_cli(body: Callable[[], object]) -> int:
+def run_cli(body: Callable[[], object], at_once: bool = False) -> int:
     """A trainer's main: body() with BLAS on one thread (the threads come from
-    map_row_chunks) and signals stopping at the next checkpoint; errors a user can cause
-    become one line on stderr and exit status 2."""
+    map_row_chunks) and signals stopping at the next checkpoint (`at_once`: at once); errors
+    a user can cause become one line on stderr and exit status 2."""
     from threadpoolctl import threadpool_limits
 
     reuse_freed_memory()
     try:
-        with threadpool_limits(limits=1, user_api="blas"), stop_at_next_checkpoint():
+        with threadpool_limits(limits=1, user_api="blas"), stop_at_next_checkpoint(at_once):
             body()
     except UserError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("interrupted; continue with --resume", file=sys.stderr)
+        print("interrupted" if at_once else "interrupted; continue with --resume", file=sys.stderr)
         return 130
     except OSError as error:
         if error.errno not in (errno.ENOSPC, errno.EDQUOT):
@@ -574,25 +560,12 @@ def reuse_freed_memory() -> None:
 
 def cli_main(argv, parse: Callable, run: Callable, checkpoints: bool = True) -> int:
     """A command's main: run(parse(argv), argv) under run_cli; parse's SystemExit (--help:
-    0, a bad flag: 2, its one line printed) becomes the status. A command without
-    checkpoints (checkpoints=False: expert.py's, lab.table) stops at once on Ctrl-C or
-    `kill`, saying "interrupted" (status 130): it writes its one file atomically at its end,
-    so there is nothing to resume."""
+    0, a bad flag: 2) becomes the status. A command without checkpoints (checkpoints=False:
+    expert.py's, lab.table) stops at once on Ctrl-C or `kill`, saying "interrupted" (130):
+    it writes its one file atomically at its end, so there is nothing to resume."""
     argv = sys.argv[1:] if argv is None else argv
-
-    def at_once() -> None:
-        if threading.current_thread() is threading.main_thread():
-            for signum in (signal.SIGINT, signal.SIGTERM):
-                if signal.getsignal(signum) is not signal.SIG_IGN:  # run_cli puts it back
-                    signal.signal(signum, signal.default_int_handler)
-        try:
-            run(parse(argv), argv)
-        except KeyboardInterrupt:
-            print("interrupted", file=sys.stderr)
-            sys.exit(130)
-
     try:
-        return run_cli((lambda: run(parse(argv), argv)) if checkpoints else at_once)
+        return run_cli(lambda: run(parse(argv), argv), at_once=not checkpoints)
     except SystemExit as exit:
         return exit.code
 

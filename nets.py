@@ -40,9 +40,8 @@ def leaky_relu_backward_(d_out: np.ndarray, activation: np.ndarray, scratch: np.
     """In place: d_out <- d_out * f'(pre), with f' = 1 where the unit is on, else 0.01.
 
     The sign of the activation equals the sign of the pre-activation, so the output
-    alone tells which slope applied. (h > 0) as 1.0/0.0, then * 0.99 + 0.01, gives the
-    slope (0 -> 0.01, the kink's sub-gradient): four cheap passes, 2.5x faster than
-    np.sign and 12x faster than a boolean mask on (1024, 500) float32.
+    alone tells which slope applied (0 -> 0.01, the kink's sub-gradient). Four in-place
+    passes: 2.5x faster than np.sign and 12x faster than a boolean mask on (1024, 500) float32.
     """
     np.greater(activation, 0.0, out=scratch)
     scratch *= 1.0 - LEAKY_SLOPE
@@ -155,12 +154,6 @@ def js_divergence_grad(x: np.ndarray, t: np.ndarray) -> np.ndarray:
 # === The multilayer perceptron ===
 
 
-def _xavier(rng: np.random.Generator, fan_in: int, fan_out: int, dtype) -> np.ndarray:
-    """Glorot & Bengio (2010) uniform initialisation: U(-r, r), r = sqrt(6/(in+out))."""
-    limit = np.sqrt(6.0 / (fan_in + fan_out))
-    return rng.uniform(-limit, limit, size=(fan_in, fan_out)).astype(dtype)
-
-
 @dataclass
 class Cache:
     """What `backward` needs from `forward`."""
@@ -195,7 +188,8 @@ class MLP:
             raise ValueError(f"unknown head {head!r}; expected one of {HEADS}")
         params = {}
         for i, (fan_in, fan_out) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
-            params[f"W{i}"] = _xavier(rng, fan_in, fan_out, dtype)
+            limit = np.sqrt(6.0 / (fan_in + fan_out))  # Xavier (Glorot & Bengio 2010)
+            params[f"W{i}"] = rng.uniform(-limit, limit, size=(fan_in, fan_out)).astype(dtype)
             params[f"b{i}"] = np.zeros(fan_out, dtype=dtype)
         return cls(list(sizes), head, params)
 
@@ -236,7 +230,6 @@ class MLP:
             else:
                 shared = block @ W0[rows]  # (G, d_block) @ (d_block, h1) -> (G, h1)
                 shared_sum = shared if shared_sum is None else shared_sum + shared
-        h = np.zeros((batch, self.sizes[1]), self.dtype) if h is None else h
         if shared_sum is None:
             h += b0
         else:
@@ -318,21 +311,14 @@ class MLP:
     def input_gradient_sq_norm(self, cache: Cache) -> float:
         """1/2 mean_n ||dx_n/du_n||^2 for a single-logit network: how sharp the critic's
         logit x is in its input u = [s, a] on the cached rows (the quantity DAC's
-        zero-centred gradient penalty, Mescheder et al. 2018, keeps small).
-
-        A leaky-ReLU network is piecewise linear: with the slopes m_i = f'(h_i) fixed,
-        dx/du is a product of matrices, computed in reverse:
-            d_{L-1} = m_{L-1} * w,  d_i = (d_{i+1} W_i^T) * m_i,  dx/du = d_1 W_0^T.
-        """
+        zero-centred gradient penalty, Mescheder et al. 2018, keeps small). With every input
+        block given row by row (none shared), rows do not mix, so row n of the input
+        gradient of sum_n x_n (`backward` with dL/dx = 1) is dx_n/du_n."""
         if self.sizes[-1] != 1 or self.n_layers < 2:
             raise ValueError("the input gradient's norm needs one output and a hidden layer")
-        last = self.n_layers - 1
-        slopes = [np.where(a > 0, 1.0, LEAKY_SLOPE).astype(self.dtype) for a in cache.activations]
-        delta = slopes[last - 1] * self.params[f"W{last}"][:, 0]  # (N, h_{L-1})
-        for i in reversed(range(1, last)):
-            # (N, h_i+1) @ (h_i+1, h_i) -> (N, h_i)
-            delta = (delta @ self.params[f"W{i}"].T) * slopes[i - 1]
-        g = delta @ self.params["W0"].T  # (N, h1) @ (h1, in) -> (N, in): dx/du
+        ones = np.ones((len(cache.logits), 1), self.dtype)
+        d_u, _ = self.backward(ones, cache, through_head=False, param_grads=False)
+        g = np.concatenate(d_u, axis=1) if isinstance(d_u, tuple) else d_u  # (N, in): dx/du
         return 0.5 * float((g * g).sum()) / len(g)
 
     # -- persistence --------------------------------------------------------------------

@@ -1333,6 +1333,15 @@ def policy_file(run_dir, policy: str) -> Path:
     )
 
 
+def restore_arrays(path, load: Callable[[], None]) -> None:
+    """Run `load()` (copying a file's arrays into networks); a missing key or a wrong
+    shape means the file is from another version or another run."""
+    try:
+        load()
+    except (KeyError, ValueError) as error:
+        raise UserError(f"{path}: does not fit this run ({error})") from None
+
+
 def policy_player(run_dir, env=None):
     """play(policy, episodes, seed): rows of a learner run's saved policy (see
     evaluate_policy), on `env` (default: a new one of the run's task)."""
@@ -1356,7 +1365,7 @@ def policy_player(run_dir, env=None):
             learner.policy.load_state(policy, "policy")
         else:
             arrays = harness.load_arrays(policy)
-            harness.restore_arrays(policy, lambda: learner.policy.load_state(arrays, "policy"))
+            restore_arrays(policy, lambda: learner.policy.load_state(arrays, "policy"))
         rng = np.random.default_rng(seed)
         rows = []
         for episode in range(episodes):

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from harness import UserError
 from lab import experiments
 from lab.experiments import ROOT, RunSpec
 from lab.table import PAPER_TASKS
@@ -640,3 +641,15 @@ def test_notebook_without_sweep_starts_nothing_and_draws_finished_runs(tmp_path)
     assert is_png(tmp_path / "fig" / "figure2.png")  # drawn from the finished run alone
     per_run = (tmp_path / "fig" / "figure2_runs.csv").read_text().splitlines()
     assert len(per_run) == 2 and per_run[1].startswith("BC,Hopper-v4,dense,7,0,")
+
+
+def test_restore_arrays_turns_a_missing_key_or_wrong_shape_into_a_user_error(tmp_path):
+    def missing():
+        raise KeyError("policy/W0")
+
+    def wrong_shape():
+        np.zeros((2, 3))[...] = np.zeros((4, 3))
+
+    for load in (missing, wrong_shape):
+        with pytest.raises(UserError, match="policy.npz: does not fit this run"):
+            experiments.restore_arrays(tmp_path / "policy.npz", load)

@@ -512,18 +512,6 @@ def test_a_checkpoint_whose_counters_this_version_does_not_have_is_a_user_error(
         harness.load_checkpoint(tmp_path, rng, lambda a: None)
 
 
-def test_restore_arrays_turns_a_missing_key_or_wrong_shape_into_a_user_error(tmp_path):
-    def missing():
-        raise KeyError("policy/W0")
-
-    def wrong_shape():
-        np.zeros((2, 3))[...] = np.zeros((4, 3))
-
-    for load in (missing, wrong_shape):
-        with pytest.raises(UserError, match="policy.npz: does not fit this run"):
-            harness.restore_arrays(tmp_path / "policy.npz", load)
-
-
 # ----------------------------------------------------------------------------------------
 # Progress rows and the clock.
 # ----------------------------------------------------------------------------------------
