@@ -114,34 +114,6 @@ def make_env(env_id: str, **kwargs) -> gym.Env:
     return env
 
 
-def simulator_states(env: gym.Env, observations: np.ndarray) -> list[tuple]:
-    """The simulator's (qpos, qvel) for each observation of a MuJoCo locomotion task. Its
-    observation starts with qpos less the k = 1 (x) or 2 (x, y) coordinates that it leaves
-    out, then qvel; those k are set to 0, as the dynamics and reward do not depend on them."""
-    model = getattr(env.unwrapped, "model", None)
-    for k in (1, 2) if model is not None else ():
-        width = model.nq - k + model.nv
-        if width > observations.shape[1]:
-            continue
-        left_out = np.zeros((len(observations), k))
-        qpos = np.concatenate([left_out, observations[:, : model.nq - k]], axis=1)
-        qvel = observations[:, model.nq - k : width].astype(np.float64)
-        states = list(zip(qpos, qvel, strict=True))
-        if np.allclose(reset_to(env, 0, states[0])[:width], observations[0, :width], atol=1e-4):
-            return states
-    raise UserError(f"--demo-starts: cannot set {env.spec.id}'s simulator to a demonstrated state")
-
-
-def reset_to(env: gym.Env, seed: int, start: tuple | None = None) -> np.ndarray:
-    """The first observation: env.reset(seed=seed), then the simulator set to `start`'s
-    (qpos, qvel) if given."""
-    observation, _ = env.reset(seed=seed)
-    if start is None:
-        return observation
-    env.unwrapped.set_state(*start)
-    return env.unwrapped._get_obs()  # the task's own observation of the state just set
-
-
 def env_dimensions(env: gym.Env) -> tuple[int, int]:
     """(dim S, dim A) of an environment made by :func:`make_env`."""
     return env.observation_space.shape[0], env.action_space.shape[0]

@@ -112,8 +112,6 @@ class Config(RunConfig):
     """Std of Gaussian noise added to executed actions in training (paper: 0; HalfCheetah)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
-    demo_starts: float = 0.0
-    """Share of training episodes started from a demonstrated state (paper: 0; Walker2d)."""
 
 
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
@@ -529,15 +527,13 @@ def run_episode(
     seed: int,
     replay: ReplayBuffer | None = None,
     exploration_noise: float = 0.0,
-    start: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[float, int]:
     """One episode with a_t = pi_theta(s_t, z), z ~ N(0, I); stores triplets if `replay`.
     Returns (true return, length). exploration_noise > 0 (a deviation for HalfCheetah):
     a_t + N(0, sigma^2 I), clipped to [-1, 1], is executed and stored. An unbounded action
     (Ours+GP) is clipped only on its way to the environment; the replay stores it as sampled.
-    `start`: the simulator's (qpos, qvel) to begin from instead of the reset state.
     """
-    observation = expert.reset_to(env, seed, start)
+    observation, _ = env.reset(seed=seed)
     state = spaces.state(observation)
     episode_return, length, done = 0.0, 0, False
     while not done:
@@ -628,7 +624,7 @@ def check_config(config: Config) -> None:
         {name: (1, math.inf, "[)") for name in at_least_one}
         | {name: (0, math.inf, "[)") for name in non_negative}
         | {name: (0, math.inf, "()") for name in ("policy_lr", "critic_lr", "rmsprop_eps")}
-        | {name: (0, 1, "[]") for name in ("policy_expert_states", "policy_average", "demo_starts")}
+        | {name: (0, 1, "[]") for name in ("policy_expert_states", "policy_average")}
         | {"rmsprop_decay": (0, 1, "[)"), "tau": (0, 1, "(]"), "gamma": (0, 1, "[)")},
     )
     for name in ("policy_hidden", "critic_hidden"):
@@ -669,7 +665,6 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
     spaces, expert_buffer, learner, replay, demos = prepare(config, env, rng, variant)
     print(demos.describe(), flush=True)
     references = expert.references_or_nan(config.env, demos)
-    starts = expert.simulator_states(env, demos.observations) if config.demo_starts else []
     run_dir = harness.open_run_dir(config.run_dir or f"runs/{config.env}-seed{config.seed}", resume)
     progress = load_checkpoint(run_dir, learner, replay, rng) if resume else harness.Progress()
     harness.write_config(run_dir, dataclasses.asdict(config))  # a resume may change the budget
@@ -738,11 +733,8 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
 
         # Alg. 1, lines 4-9: one episode with the current policy.
         seed = int(rng.integers(2**31))
-        start = None  # a --demo-starts share of episodes begins at a demonstrated state
-        if starts and rng.random() < config.demo_starts:
-            start = starts[rng.integers(len(starts))]
         episode_return, length = run_episode(
-            env, learner, spaces, rng, seed, replay, config.exploration_noise, start
+            env, learner, spaces, rng, seed, replay, config.exploration_noise
         )
         progress.recent_returns.append(episode_return)
         progress.episodes += 1

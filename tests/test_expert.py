@@ -544,36 +544,3 @@ def test_demo_path_is_the_given_file_or_the_default_demonstrations(tmp_path, mon
     default = tmp_path / f"{PENDULUM}-dense-1traj-seed2.npz"
     assert expert.demo_path(settings, make=False) == default and not default.exists()
     assert expert.demo_path(SimpleNamespace(demos="my.npz")) == Path("my.npz")
-
-
-@pytest.mark.parametrize(
-    "env_id, left_out",
-    [("Hopper-v4", 1), ("HalfCheetah-v4", 1), ("Walker2d-v4", 1), ("Ant-v4", 2)]
-    + [("Humanoid-v4", 2), ("Ant-v5", 2)],
-)
-def test_simulator_states_give_back_the_observed_states(env_id, left_out):
-    """For every paper task, setting the simulator to simulator_states(observations)[i]
-    reproduces observation i's positions and velocities, which are all of it but for
-    Humanoid's and Ant-v5's derived quantities, from states well away from the reset."""
-    env = expert.make_env(env_id)
-    env.action_space.seed(0)
-    env.reset(seed=0)
-    observations = np.array([env.step(env.action_space.sample())[0] for _ in range(30)])
-    states = expert.simulator_states(env, observations)
-    width = env.unwrapped.model.nq - left_out + env.unwrapped.model.nv
-    assert (width == observations.shape[1]) == (env_id not in ("Humanoid-v4", "Ant-v5"))
-    for i in (5, 29):
-        restored = expert.reset_to(env, 123, states[i])
-        np.testing.assert_allclose(restored[:width], observations[i, :width], atol=1e-6)
-        assert np.abs(restored[:width] - expert.reset_to(env, 123)[:width]).max() > 0.1
-
-
-def test_simulator_states_refuse_what_they_cannot_set():
-    """A task with no MuJoCo simulator, or whose observation is not its (qpos, qvel), is
-    one line naming --demo-starts."""
-    with pytest.raises(UserError, match="--demo-starts"):
-        expert.simulator_states(expert.make_env("Pendulum-v1"), np.zeros((2, 3), np.float32))
-    reacher = expert.make_env("Reacher-v4")  # observes cos and sin of its joint angles
-    observation, _ = reacher.reset(seed=0)
-    with pytest.raises(UserError, match="--demo-starts"):
-        expert.simulator_states(reacher, observation[None])

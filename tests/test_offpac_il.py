@@ -483,50 +483,6 @@ def test_exploration_noise_is_executed_and_stored():
     assert np.abs(stored).max() == 1.0  # sigma = 0.5 pushes some components to the bound
 
 
-def test_an_episode_from_a_demonstrated_state_starts_there(hopper_demos):
-    """run_episode(start=...) puts the simulator in the demonstrated state: the first stored
-    state is that demonstration's observation in the networks' units."""
-    import expert
-
-    config = offpac_il.Config(policy_hidden=(4, 4), critic_hidden=(4, 4), total_steps=1000)
-    env, spaces, learner = hopper_learner(config)
-    demos = expert.load_demos(hopper_demos, "Hopper-v4")
-    starts = expert.simulator_states(env, demos.observations)
-    for i in (0, 37, 99):
-        replay = offpac_il.ReplayBuffer(2000, 11, 3)
-        rng = np.random.default_rng(1)
-        offpac_il.run_episode(env, learner, spaces, rng, 0, replay, 0.0, starts[i])
-        expected = spaces.state(demos.observations[i])
-        np.testing.assert_allclose(replay.data.states[0], expected, atol=1e-5)
-
-
-@pytest.mark.parametrize("share, started", [(0.0, 0), (1.0, "all")])
-def test_demo_starts_share_of_training_episodes(
-    tmp_path, hopper_demos, monkeypatch, share, started
-):
-    """--demo-starts 1 starts every training episode at one of the demonstrated states;
-    0 starts none there (and draws nothing more from the run's Generator: test_golden)."""
-    import expert
-
-    demo_states = expert.load_demos(hopper_demos, "Hopper-v4").observations
-    seen = []
-    play = offpac_il.run_episode
-
-    def recording(env, learner, spaces, rng, seed, replay=None, noise=0.0, start=None):
-        episode = play(env, learner, spaces, rng, seed, replay, noise, start)
-        if replay is not None:  # a training episode, not an evaluation
-            seen.append(start)
-        return episode
-
-    monkeypatch.setattr(offpac_il, "run_episode", recording)
-    offpac_il.train(tiny_config(tmp_path / "r", hopper_demos, extra=["--demo-starts", share]))
-    starts = [s for s in seen if s is not None]
-    assert len(seen) > 2 and len(starts) == (len(seen) if started == "all" else 0)
-    for qpos, qvel in starts:  # Hopper leaves out x only: qpos[1:], qvel is the observation
-        observation = np.concatenate([qpos[1:], qvel])
-        assert np.abs(demo_states - observation).max(axis=1).min() < 1e-6
-
-
 def test_prepare_draws_pn_then_qn_from_the_runs_generator(hopper_demos):
     """prepare: B_pi_E from the demonstrations in the networks' units, a learner whose PN
     and QN are the first draws of the Generator (in that order), an empty B_beta."""
@@ -643,26 +599,25 @@ def test_command_line_run_writes_its_files(tmp_path, hopper_demos):
     assert again.returncode == 2 and "--resume" in again.stderr
 
 
-@pytest.mark.parametrize("extra", [(), ("--demo-starts", "0.5")])
-def test_resume_reproduces_an_uninterrupted_run(tmp_path, hopper_demos, monkeypatch, extra):
-    offpac_il.train(tiny_config(tmp_path / "whole", hopper_demos, extra=extra))
+def test_resume_reproduces_an_uninterrupted_run(tmp_path, hopper_demos, monkeypatch):
+    offpac_il.train(tiny_config(tmp_path / "whole", hopper_demos))
     same_seed = tmp_path / "again"
-    offpac_il.train(tiny_config(same_seed, hopper_demos, extra=extra))
+    offpac_il.train(tiny_config(same_seed, hopper_demos))
     other_seed = tmp_path / "other"
-    offpac_il.train(tiny_config(other_seed, hopper_demos, seed=1, extra=extra))
+    offpac_il.train(tiny_config(other_seed, hopper_demos, seed=1))
 
     interrupted = tmp_path / "interrupted"
     with monkeypatch.context() as patch:
         patch.setattr(offpac_il, "run_episode", interrupted_after(3))
         with pytest.raises(KeyboardInterrupt):
-            offpac_il.train(tiny_config(interrupted, hopper_demos, extra=extra))
+            offpac_il.train(tiny_config(interrupted, hopper_demos))
     partial = read_progress(interrupted)
     assert 0 < int(partial[-1]["interactions"]) < 300
-    offpac_il.train(tiny_config(interrupted, hopper_demos, extra=extra), resume=True)
+    offpac_il.train(tiny_config(interrupted, hopper_demos), resume=True)
 
     whole = read_progress(tmp_path / "whole")
     # Resuming a finished run adds nothing.
-    offpac_il.train(tiny_config(tmp_path / "whole", hopper_demos, extra=extra), resume=True)
+    offpac_il.train(tiny_config(tmp_path / "whole", hopper_demos), resume=True)
     assert read_progress(tmp_path / "whole") == whole
     assert read_progress(same_seed) == whole
     assert read_progress(other_seed) != whole
@@ -835,7 +790,6 @@ def test_kill_and_resume_from_the_command_line(tmp_path, hopper_demos):
         (["--paper", "--resume", "/nonexistent/run"], "--paper"),
         (["--bogus-flag"], "--bogus-flag"),
         (["--seed", "many"], "--seed"),
-        (["--demo-starts", "1.5"], "--demo-starts"),
     ],
 )
 def test_bad_input_is_one_line_and_exit_2(tmp_path, args, message):
