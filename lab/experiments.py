@@ -901,12 +901,14 @@ def _color(method: str) -> str:
     return f"C{list(METHODS).index(method) % 10}" if method in METHODS else "k"
 
 
-def _curve_panel(ax, runs: Sequence[Run], methods: Sequence[str], x: str, csv_rows, panel: str):
+def _curve_panel(
+    ax, runs: Sequence[Run], methods: Sequence[str], x: str, csv_rows, panel: str, stopped=()
+):
     """One line per method: mean score (`output_scores`) over seeds vs x, band min-max.
     A method whose runs do not move along x (BC: no interactions) is drawn as a level
-    line at its mean final score. Wall time is shown in hours past two hours; x is
-    logarithmic when the methods' budgets differ a hundredfold (GAIL's millions of
-    interactions)."""
+    line at its mean final score; each run in `stopped` as a dotted line of its own. Wall
+    time is shown in hours past two hours; x is logarithmic when the methods' budgets
+    differ a hundredfold (GAIL's millions of interactions)."""
     bands, levels = {}, {}
     for method in methods:
         chosen = [r for r in runs if r.labels.get("method") == method and r.progress]
@@ -918,8 +920,19 @@ def _curve_panel(ax, runs: Sequence[Run], methods: Sequence[str], x: str, csv_ro
                 levels[method] = (np.mean(finals), len(group))
             else:
                 bands[method] = band
-    ends = [band[0][-1] for band in bands.values()]
+    ends = [band[0][-1] for band in bands.values()] + [r.progress[x][-1] for r in stopped]
     scale, unit = (3600.0, "h") if x == "wall_seconds" and max(ends, default=0) > 7200 else (1, "s")
+    for run in stopped:
+        method, xs, scores = run.labels.get("method"), run.progress[x], output_scores(run)
+        stop = f"{run.progress['interactions'][-1] / 1000:,.0f} k"
+        ax.plot(
+            xs / scale, scores, ls=":", color=_color(method), label=f"{method}, stopped at {stop}"
+        )
+        csv_rows.extend(
+            dict(panel=panel, method=f"{method} (stopped)", x=float(a), mean=float(b),
+                 min=float(b), max=float(b), n=1)
+            for a, b in zip(xs, scores, strict=True)
+        )  # fmt: skip
     for method, (xs, mean, low, high, n) in bands.items():
         ax.plot(xs / scale, mean, color=_color(method), label=f"{method} ({_seeds(n)})")
         ax.fill_between(xs / scale, low, high, color=_color(method), alpha=0.2)
@@ -949,12 +962,15 @@ def figure3(
     methods: Sequence[str] = COMPARED,
 ) -> Path | None:
     """Figure 3: normalised score vs wall time (top) and vs interactions (bottom), one
-    column per task, at one setting (the paper: sparse). Finished runs only; writes
-    STEM.csv with the plotted bands. None when there is no run."""
+    column per task, at one setting (the paper: sparse). Finished runs as bands; a run
+    stopped short of its budget as a dotted line of its own, labelled with where it
+    stopped, so that a task whose runs could not finish still shows how far they got.
+    Writes STEM.csv with the plotted lines (a stopped run's method as "M (stopped)").
+    None when there is no run."""
     chosen = [
         r
-        for r in _select(runs, sampling=sampling, trajectories=trajectories)
-        if r.labels.get("method") in methods
+        for r in _select(runs, finished_only=False, sampling=sampling, trajectories=trajectories)
+        if r.labels.get("method") in methods and r.progress
     ]
     if not chosen:
         return None
@@ -965,7 +981,9 @@ def figure3(
     for j, env in enumerate(envs):
         in_env = [r for r in chosen if r.labels["env"] == env]
         for i, x in enumerate(("wall_seconds", "interactions")):
-            _curve_panel(axes[i][j], in_env, methods, x, csv_rows, f"{env} {x}")
+            finished = [r for r in in_env if r.finished]
+            stopped = [r for r in in_env if not r.finished]
+            _curve_panel(axes[i][j], finished, methods, x, csv_rows, f"{env} {x}", stopped)
             axes[i][j].set_title(f"{env}, {trajectories} {sampling} trajectories")
     write_csv(csv_rows, Path(out_png).with_suffix(".csv"))
     return _save(fig, out_png)

@@ -287,7 +287,7 @@ def test_figures_write_png_and_csv(tmp_path):
                         fake_run(runs_root, method, seed, n, sampling, scale * n / 4)
     unfinished = experiments.run_dir_of(runs_root, "Ours", "Hopper-v4", "sparse", 4, 7)
     fake_run(runs_root, "Ours", 7, 4, "sparse", 5.0)
-    (unfinished / "policy_final.npz").unlink()  # left out of every figure
+    (unfinished / "policy_final.npz").unlink()  # stopped: a line of its own in Figure 3 only
 
     runs = experiments.load_runs(runs_root)
     assert len(runs) == 27
@@ -303,6 +303,14 @@ def test_figures_write_png_and_csv(tmp_path):
     assert len((out / "figure2_runs.csv").read_text().splitlines()) == 1 + 26
     curves = (out / "figure3.csv").read_text()
     assert "Hopper-v4 interactions,BC,nan," in curves  # no interactions: a level line
+    stopped = [line for line in curves.splitlines() if "Ours (stopped)" in line]
+    assert stopped and all(line.endswith(",1") for line in stopped)
+    assert {line.split(",")[0] for line in stopped} == {
+        "Hopper-v4 wall_seconds",
+        "Hopper-v4 interactions",
+    }
+    # its own scores (5 k / 5 + 0.35), not pooled with the finished seeds
+    assert max(float(line.split(",")[3]) for line in stopped) == pytest.approx(5.35)
     assert "Ours+OnP" in (out / "figure4.csv").read_text()
 
     # Without ablation runs there is no Figure 4.
