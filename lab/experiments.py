@@ -901,14 +901,15 @@ def _color(method: str) -> str:
     return f"C{list(METHODS).index(method) % 10}" if method in METHODS else "k"
 
 
-def _curve_panel(
-    ax, runs: Sequence[Run], methods: Sequence[str], x: str, csv_rows, panel: str, stopped=()
-):
-    """One line per method: mean score (`output_scores`) over seeds vs x, band min-max.
-    A method whose runs do not move along x (BC: no interactions) is drawn as a level
-    line at its mean final score; each run in `stopped` as a dotted line of its own. Wall
-    time is shown in hours past two hours; x is logarithmic when the methods' budgets
-    differ a hundredfold (GAIL's millions of interactions)."""
+def _curve_panel(ax, runs: Sequence[Run], methods: Sequence[str], x: str, csv_rows, panel: str):
+    """One line per method: mean score (`output_scores`) over its finished seeds vs x, band
+    min-max; a run stopped short of its budget as a dotted line of its own. A method whose
+    runs do not move along x (BC: no interactions) is drawn as a level line at its mean
+    final score. Wall time is shown in hours past two hours; x is logarithmic when the
+    methods' budgets differ a hundredfold (GAIL's millions of interactions)."""
+    in_methods = [r for r in runs if r.labels.get("method") in methods and r.progress]
+    stopped = [r for r in in_methods if not r.finished]
+    runs = [r for r in runs if r.finished]
     bands, levels = {}, {}
     for method in methods:
         chosen = [r for r in runs if r.labels.get("method") == method and r.progress]
@@ -981,9 +982,7 @@ def figure3(
     for j, env in enumerate(envs):
         in_env = [r for r in chosen if r.labels["env"] == env]
         for i, x in enumerate(("wall_seconds", "interactions")):
-            finished = [r for r in in_env if r.finished]
-            stopped = [r for r in in_env if not r.finished]
-            _curve_panel(axes[i][j], finished, methods, x, csv_rows, f"{env} {x}", stopped)
+            _curve_panel(axes[i][j], in_env, methods, x, csv_rows, f"{env} {x}")
             axes[i][j].set_title(f"{env}, {trajectories} {sampling} trajectories")
     write_csv(csv_rows, Path(out_png).with_suffix(".csv"))
     return _save(fig, out_png)
