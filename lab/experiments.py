@@ -1359,9 +1359,9 @@ def restore_arrays(path, load: Callable[[], None]) -> None:
         raise UserError(f"{path}: does not fit this run ({error})") from None
 
 
-def policy_player(run_dir, env=None):
-    """play(policy, episodes, seed): rows of a learner run's saved policy (see
-    evaluate_policy), on `env` (default: a new one of the run's task)."""
+def learner_of_run(run_dir, env=None):
+    """A learner run's config, env (default: a new one of its task), spaces, expert
+    buffer, demonstrations and a new learner, as its training started them."""
     import expert
     import offpac_il
     from lab import ablations
@@ -1373,16 +1373,33 @@ def policy_player(run_dir, env=None):
     config = learner_config({**saved, "run_dir": str(run_dir)})
     env = env if env is not None else expert.make_env(config.env)
     rng = np.random.default_rng(config.seed)
-    spaces, _, learner, _, demos = offpac_il.prepare(config, env, rng, ablations.variant_of(config))
+    spaces, expert_buffer, learner, _, demos = offpac_il.prepare(
+        config, env, rng, ablations.variant_of(config)
+    )
+    return config, env, spaces, expert_buffer, demos, learner
+
+
+def load_policy(learner, policy: Path | dict) -> None:
+    """Copy a policy file's arrays (or the arrays themselves) into learner.policy."""
+    if isinstance(policy, dict):
+        learner.policy.load_state(policy, "policy")
+    else:
+        arrays = harness.load_arrays(policy)
+        restore_arrays(policy, lambda: learner.policy.load_state(arrays, "policy"))
+
+
+def policy_player(run_dir, env=None):
+    """play(policy, episodes, seed): rows of a learner run's saved policy (see
+    evaluate_policy), on `env` (default: a new one of the run's task)."""
+    import expert
+    import offpac_il
+
+    config, env, spaces, _, demos, learner = learner_of_run(run_dir, env)
     references = expert.references_or_nan(config.env, demos)
 
     def play(policy: Path | dict, episodes: int, seed: int) -> list[dict]:
         """policy: a policy file, or the arrays it holds."""
-        if isinstance(policy, dict):
-            learner.policy.load_state(policy, "policy")
-        else:
-            arrays = harness.load_arrays(policy)
-            restore_arrays(policy, lambda: learner.policy.load_state(arrays, "policy"))
+        load_policy(learner, policy)
         rng = np.random.default_rng(seed)
         rows = []
         for episode in range(episodes):
@@ -1416,6 +1433,67 @@ def evaluate_policy(run_dir, policy: str = "final", episodes: int = 20, seed: in
     if not path.exists():
         raise UserError(f"{path} does not exist")
     return policy_player(run_dir)(path, episodes, seed)
+
+
+def action_error_along_expert(
+    run_dir,
+    policy: str = "average",
+    episodes: int = 5,
+    seed: int = 3_000_000,
+    edges: Sequence[int] = (0, 10, 40, 100, 300, 1000),
+    noise_samples: int = 16,
+) -> list[dict]:
+    """Where along an episode a run's saved policy (`policy_file`) is wrong.
+
+    The shipped expert plays `episodes` episodes from reset seeds seed, seed + 1, ...;
+    at each of its states s, the policy's squared action error per component, the mean
+    over `noise_samples` noise vectors z of (pi(s, z) - a_E(s))^2 in [-1, 1] units, is
+    pooled into the time-step bins [edges[i], edges[i+1]). A last row gives the same
+    error at the demonstrated states, the run's logged expert_action_error. An episode
+    start the demonstrations rarely hold shows as a first bin well above the rest.
+    """
+    import expert
+
+    read_config(run_dir)
+    path = policy_file(run_dir, policy)
+    if not path.exists():
+        raise UserError(f"{path} does not exist")
+    config, env, spaces, expert_buffer, _, learner = learner_of_run(run_dir)
+    load_policy(learner, path)
+    policy_of_expert = expert.load_expert(config.env)
+    rng = np.random.default_rng(seed)
+    errors = [[] for _ in edges[1:]]
+
+    def squared_error(states, actions):  # (N, dim s), (N, dim A) -> (N,)
+        repeated = np.repeat(states, noise_samples, axis=0)  # (N*Z, dim s)
+        noise = rng.standard_normal((len(repeated), learner.policy.noise_dim))
+        chosen = learner.policy.act(repeated, noise.astype(repeated.dtype))  # (N*Z, dim A)
+        wrong = (chosen - np.repeat(actions, noise_samples, axis=0)) ** 2
+        return wrong.reshape(len(states), -1).mean(axis=1)
+
+    for episode in range(episodes):
+        observation, _ = env.reset(seed=seed + episode)
+        observations, actions = [], []
+        for _ in range(edges[-1]):
+            env_action = policy_of_expert.act(observation)
+            observations.append(observation)
+            actions.append(np.clip(spaces.from_env_action(env_action), -1.0, 1.0))
+            observation, _, terminated, truncated, _ = env.step(env_action)
+            if terminated or truncated:
+                break
+        error = squared_error(spaces.state(np.array(observations)), np.array(actions))
+        for i, (start, stop) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
+            errors[i].extend(error[start:stop])
+    rows = [
+        {"steps": f"{start}-{stop}", "states": len(e), "squared_error": float(np.mean(e))}
+        for start, stop, e in zip(edges[:-1], edges[1:], errors, strict=True)
+        if e
+    ]
+    at_demos = squared_error(expert_buffer.states, expert_buffer.actions)
+    rows.append(
+        {"steps": "demonstrated", "states": len(at_demos), "squared_error": float(at_demos.mean())}
+    )
+    return rows
 
 
 def evaluate_snapshots(run_dir, episodes: int = 20, seed: int = 3_000_000) -> list[dict]:
@@ -1593,6 +1671,14 @@ def run_command(argv) -> int:
     )
     evaluation.add_argument("--episodes", type=positive_int, default=20)
     evaluation.add_argument("--seed", type=int, default=3_000_000, help="reset seed of the first")
+    along = sub.add_parser(
+        "along-expert",
+        help="a run's saved policy's action error along the expert's own episodes, by time step",
+    )
+    along.add_argument("run_dir")
+    along.add_argument("--policy", default="average", help="as for evaluate")
+    along.add_argument("--episodes", type=positive_int, default=5)
+    along.add_argument("--seed", type=int, default=3_000_000, help="reset seed of the first")
     averaging = sub.add_parser(
         "average-snapshots",
         help="what other --policy-average horizons would have scored, from the snapshots",
@@ -1630,6 +1716,9 @@ def run_command(argv) -> int:
             f"normalised score {summary['normalized_score']:.3f} ± {summary['std']:.3f};"
             f" {summary['fell']} of {summary['episodes']} episodes fell"
         )
+        return 0
+    if args.command == "along-expert":
+        print_rows(action_error_along_expert(args.run_dir, args.policy, args.episodes, args.seed))
         return 0
     if args.command == "average-snapshots":
         print_rows(averaged_snapshots(args.run_dir, args.horizons, args.episodes, args.seed))

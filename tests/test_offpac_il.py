@@ -937,6 +937,54 @@ def test_evaluate_plays_the_saved_policy_from_new_starts(tmp_path, hopper_demos)
     assert experiments.evaluate_policy(tmp_path / "run", "final", 3, seed=7) != rows
 
 
+def test_action_error_along_the_experts_episodes(tmp_path, hopper_demos, monkeypatch):
+    """`experiments.action_error_along_expert` bins the saved policy's squared action
+    error by time step along the expert's episodes. Checked with the policy made blind to
+    z and stand-in experts: one that acts as that policy (no error), and one that departs
+    from it by 0.1 per component from step 5 on (0 in the first bin, 0.01 after)."""
+    import expert
+    from lab import experiments
+
+    run = tmp_path / "run"
+    offpac_il.train(tiny_config(run, hopper_demos))
+    arrays = harness.load_arrays(run / "policy_final.npz")
+    state_dim = arrays["policy/W0"].shape[0] // 2  # PN's input is [s, z], dim z = dim s
+    arrays["policy/W0"][state_dim:] = 0.0  # now pi(s, z) = pi(s, 0)
+    harness.save_arrays(run / "policy_final.npz", arrays)
+    _, _, spaces, expert_buffer, _, learner = experiments.learner_of_run(run)
+    experiments.load_policy(learner, run / "policy_final.npz")
+
+    def policy_action(observation):  # in [-1, 1] units
+        state = spaces.state(observation)[None]
+        return learner.policy.act(state, np.zeros((1, state_dim), np.float32))[0]
+
+    class StandIn:
+        def __init__(self, departure):
+            self.departure, self.steps = departure, 0
+
+        def act(self, observation):
+            action = policy_action(observation)
+            action = action - (self.steps >= 5) * self.departure * np.sign(action)
+            self.steps += 1
+            return spaces.to_env_action(action[None])[0]
+
+    def table(departure):
+        monkeypatch.setattr(expert, "load_expert", lambda env_id: StandIn(departure))
+        return experiments.action_error_along_expert(run, "final", 1, 7, edges=(0, 5, 1000))
+
+    same, departing = table(0.0), table(0.1)
+    assert [row["steps"] for row in same] == ["0-5", "5-1000", "demonstrated"]
+    assert same[0]["states"] == 5 and same[1]["states"] >= 1  # the episode outlives step 5
+    assert same[0]["squared_error"] < 1e-10 and same[1]["squared_error"] < 1e-10
+    assert departing[0]["squared_error"] < 1e-10
+    assert departing[1]["squared_error"] == pytest.approx(0.01, rel=1e-4)
+    zero = np.zeros((len(expert_buffer.states), state_dim), np.float32)
+    chosen = learner.policy.act(expert_buffer.states, zero)
+    at_demos = ((chosen - expert_buffer.actions) ** 2).mean()
+    assert same[-1]["states"] == len(expert_buffer.states)
+    assert same[-1]["squared_error"] == pytest.approx(at_demos, rel=1e-5)
+
+
 def test_exponential_averages_are_the_polyak_average_seen_at_the_snapshots():
     """`experiments.exponential_averages`: after a gap of t interactions the old average
     keeps exp(-t / horizon) of its weight, as t soft updates at rate 1 / horizon towards
