@@ -1449,12 +1449,15 @@ def action_error_along_expert(
     at each of its states s, the policy's squared action error per component, the mean
     over `noise_samples` noise vectors z of (pi(s, z) - a_E(s))^2 in [-1, 1] units, is
     pooled into the time-step bins [edges[i], edges[i+1]). A last row gives the same
-    error at the demonstrated states, the run's logged expert_action_error. An episode
-    start the demonstrations rarely hold shows as a first bin well above the rest.
+    error at the demonstrated states (the run logs it as expert_action_error, with one z
+    per state). An episode start the demonstrations rarely hold shows as a first bin well
+    above the rest.
     """
     import expert
 
     read_config(run_dir)
+    if policy == "snapshots":
+        raise UserError("--policy snapshots: give one policy (a snapshot's interactions)")
     path = policy_file(run_dir, policy)
     if not path.exists():
         raise UserError(f"{path} does not exist")

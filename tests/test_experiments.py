@@ -593,6 +593,7 @@ def test_hold_command_prints_one_row_per_run(tmp_path, capsys):
         (["along-expert", "{absent}"], "config.json missing"),
         (["along-expert", "{run}"], "policy_average.npz does not exist"),
         (["along-expert", "{run}", "--policy", "worst"], "--policy worst"),
+        (["along-expert", "{run}", "--policy", "snapshots"], "give one policy"),
         (["average-snapshots", "{absent}"], "config.json missing"),
         (["average-snapshots", "{run}"], "fewer than two policy snapshots"),
         (["average-snapshots", "{run}", "--horizons", "0"], "--horizons"),
