@@ -290,6 +290,24 @@ def default_demos_path(env_id: str, trajectories: int, sampling: str, seed: int)
     return DEMOS_DIR / f"{env_id}-{sampling}-{trajectories}traj-seed{seed}.npz"
 
 
+def expert_episode(env: gym.Env, expert: ExpertPolicy, seed: int, steps: int = TRAJECTORY_STEPS):
+    """One episode of `expert` from reset(seed=seed), at most `steps` steps: the states
+    s_0 .. s_T, (T + 1, dim S); the actions a_0 .. a_{T-1} in the environment's units,
+    (T, dim A); the return; and whether it ended by termination."""
+    states, actions, episode_return, terminated = [], [], 0.0, False
+    observation, _ = env.reset(seed=seed)
+    for _ in range(steps):
+        action = np.asarray(expert.act(observation), dtype=np.float64)
+        states.append(observation)
+        actions.append(action)
+        observation, reward, terminated, truncated, _ = env.step(action)
+        episode_return += float(reward)
+        if terminated or truncated:
+            break
+    states.append(observation)
+    return np.asarray(states), np.asarray(actions), episode_return, terminated
+
+
 def make_demos(
     env_id: str,
     trajectories: int,
@@ -329,23 +347,11 @@ def make_demos(
                     f"{len(returns)} of {max_attempts} episodes; it is not good enough for demos"
                 )
             episode_seed = int(episode_rng.integers(0, 2**31 - 1))
-            states, episode_actions, episode_return = [], [], 0.0
-            observation, _ = env.reset(seed=episode_seed)
-            for _ in range(TRAJECTORY_STEPS):
-                action = np.asarray(expert.act(observation), dtype=np.float64)
-                states.append(observation)
-                episode_actions.append(action)
-                observation, reward, terminated, truncated, _ = env.step(action)
-                episode_return += float(reward)
-                if terminated or truncated:
-                    break
-            states.append(observation)
-            if len(episode_actions) < TRAJECTORY_STEPS or terminated or episode_return < min_return:
+            states, actions, episode_return, terminated = expert_episode(env, expert, episode_seed)
+            if len(actions) < TRAJECTORY_STEPS or terminated or episode_return < min_return:
                 dropped_seeds.append(episode_seed)
                 continue
-            states = np.asarray(states)  # (1001, dim S): s_0 .. s_1000
             keep = kept_steps(TRAJECTORY_STEPS, sampling, subsample_rng)
-            actions = np.asarray(episode_actions)
             # Every kept trajectory ran into the time limit: truncation, not termination.
             terminals = np.zeros(TRAJECTORY_STEPS, bool)
             chunks.append(tuple(a[keep] for a in (states[:-1], actions, states[1:], terminals)))

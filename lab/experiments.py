@@ -1350,6 +1350,15 @@ def policy_file(run_dir, policy: str) -> Path:
     )
 
 
+def existing_policy_file(run_dir, policy: str) -> Path:
+    """`policy_file`, once the run's config.json and that file are known to exist."""
+    read_config(run_dir)  # a run at all, before its files
+    path = policy_file(run_dir, policy)
+    if not path.exists():
+        raise UserError(f"{path} does not exist")
+    return path
+
+
 def restore_arrays(path, load: Callable[[], None]) -> None:
     """Run `load()` (copying a file's arrays into networks); a missing key or a wrong
     shape means the file is from another version or another run."""
@@ -1428,11 +1437,7 @@ def evaluate_policy(run_dir, policy: str = "final", episodes: int = 20, seed: in
     how often the policy falls from starts it was never scored on.
     """
 
-    read_config(run_dir)  # a run at all, before its files
-    path = policy_file(run_dir, policy)
-    if not path.exists():
-        raise UserError(f"{path} does not exist")
-    return policy_player(run_dir)(path, episodes, seed)
+    return policy_player(run_dir)(existing_policy_file(run_dir, policy), episodes, seed)
 
 
 def action_error_along_expert(
@@ -1455,12 +1460,9 @@ def action_error_along_expert(
     """
     import expert
 
-    read_config(run_dir)
     if policy == "snapshots":
         raise UserError("--policy snapshots: give one policy (a snapshot's interactions)")
-    path = policy_file(run_dir, policy)
-    if not path.exists():
-        raise UserError(f"{path} does not exist")
+    path = existing_policy_file(run_dir, policy)
     config, env, spaces, expert_buffer, _, learner = learner_of_run(run_dir)
     load_policy(learner, path)
     policy_of_expert = expert.load_expert(config.env)
@@ -1475,16 +1477,11 @@ def action_error_along_expert(
         return wrong.reshape(len(states), -1).mean(axis=1)
 
     for episode in range(episodes):
-        observation, _ = env.reset(seed=seed + episode)
-        observations, actions = [], []
-        for _ in range(edges[-1]):
-            env_action = policy_of_expert.act(observation)
-            observations.append(observation)
-            actions.append(np.clip(spaces.from_env_action(env_action), -1.0, 1.0))
-            observation, _, terminated, truncated, _ = env.step(env_action)
-            if terminated or truncated:
-                break
-        error = squared_error(spaces.state(np.array(observations)), np.array(actions))
+        states, actions, _, _ = expert.expert_episode(
+            env, policy_of_expert, seed + episode, edges[-1]
+        )
+        # the states acted upon, and the actions in [-1, 1] units (clipped at the bounds)
+        error = squared_error(spaces.state(states[:-1]), spaces.from_env_action(actions))
         for i, (start, stop) in enumerate(zip(edges[:-1], edges[1:], strict=True)):
             errors[i].extend(error[start:stop])
     rows = [
