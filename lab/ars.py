@@ -39,6 +39,7 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -166,9 +167,6 @@ _worker_env: gym.Env | None = None
 
 def _init_worker(env_id: str) -> None:
     global _worker_env
-    # Ctrl-C reaches the whole process group; only the parent acts on it (it checkpoints
-    # and then closes the pool), so a worker is never cut off mid-task.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _worker_env = make_env(env_id)
 
 
@@ -214,16 +212,30 @@ class RolloutRunner:
 
     def __init__(self, env_id: str, workers: int):
         self.pool = None
+        self.mid_task = False  # a stop inside run() must not wait for the workers
         if workers > 1:
             # spawn: a clean interpreter per worker, safe whatever threads the parent holds.
-            context = multiprocessing.get_context("spawn")
-            self.pool = context.Pool(workers, initializer=_init_worker, initargs=(env_id,))
+            # Ctrl-C reaches the whole process group; only the parent acts on it (it
+            # checkpoints and then closes the pool). The workers ignore it from their first
+            # instruction, because an ignored signal stays ignored across exec; setting that
+            # in the initializer would leave their start-up (seconds of imports) exposed.
+            ignore = threading.current_thread() is threading.main_thread()
+            previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if ignore else None
+            try:
+                context = multiprocessing.get_context("spawn")
+                self.pool = context.Pool(workers, initializer=_init_worker, initargs=(env_id,))
+            finally:
+                if ignore:
+                    signal.signal(signal.SIGINT, previous)
         else:
             self.env = make_env(env_id)
 
     def run(self, tasks: list[tuple]) -> list[tuple]:
         if self.pool is not None:
-            return self.pool.map(_rollout_task, tasks, chunksize=1)
+            self.mid_task = True
+            results = self.pool.map(_rollout_task, tasks, chunksize=1)
+            self.mid_task = False
+            return results
         return [rollout(self.env, *task) for task in tasks]
 
     def close(self) -> None:
@@ -237,8 +249,12 @@ class RolloutRunner:
         return self
 
     def __exit__(self, error_type, error, traceback) -> None:
-        if self.pool is not None and error_type is not None:
-            self.pool.terminate()  # e.g. Ctrl-C: do not wait for workers that were interrupted
+        # A stop at a checkpoint finds the workers idle (or one still starting, on a loaded
+        # machine): close and join let them exit cleanly, where terminating a worker in the
+        # middle of its imports leaves a child of it writing to a dead pipe. Only a stop
+        # in the middle of the rollouts (a second signal) terminates them.
+        if self.pool is not None and error_type is not None and self.mid_task:
+            self.pool.terminate()
         self.close()
 
 
