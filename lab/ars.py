@@ -39,7 +39,6 @@ import multiprocessing
 import os
 import signal
 import sys
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -165,8 +164,22 @@ class ObservationStatistics:
 _worker_env: gym.Env | None = None
 
 
+# Ctrl-C, `kill` and `timeout` may signal the whole process group. Only the parent acts on
+# them: it checkpoints at the end of the iteration and then closes the pool. A worker that
+# died of one mid-task would leave `pool.map` waiting forever.
+_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
+
 def _init_worker(env_id: str) -> None:
     global _worker_env
+    # The worker started with the stop signals blocked (a signal mask survives exec; see
+    # RolloutRunner). It leaves the parent's process group, drops what arrived meanwhile,
+    # and keeps SIGTERM's default action, with which Pool.terminate stops it.
+    os.setsid()
+    for signum in _STOP_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
     _worker_env = make_env(env_id)
 
 
@@ -215,18 +228,16 @@ class RolloutRunner:
         self.mid_task = False  # a stop inside run() must not wait for the workers
         if workers > 1:
             # spawn: a clean interpreter per worker, safe whatever threads the parent holds.
-            # Ctrl-C reaches the whole process group; only the parent acts on it (it
-            # checkpoints and then closes the pool). The workers ignore it from their first
-            # instruction, because an ignored signal stays ignored across exec; setting that
-            # in the initializer would leave their start-up (seconds of imports) exposed.
-            ignore = threading.current_thread() is threading.main_thread()
-            previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if ignore else None
+            # The stop signals are blocked while the pool starts, so the workers inherit the
+            # block and are never cut off in their start-up (seconds of imports) before
+            # _init_worker takes them out of the process group; the parent gets its signals
+            # when the block ends. The pool's threads keep the block: signals go to this one.
+            signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
             try:
                 context = multiprocessing.get_context("spawn")
                 self.pool = context.Pool(workers, initializer=_init_worker, initargs=(env_id,))
             finally:
-                if ignore:
-                    signal.signal(signal.SIGINT, previous)
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)
         else:
             self.env = make_env(env_id)
 

@@ -59,9 +59,18 @@ def checkpointed(run_dir: Path, counter: str) -> int:
     return json.loads(str(counters))[counter]
 
 
-@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+# kill PID: the run's own process; Ctrl-C, and `timeout` or `kill -- -PGID`: the whole
+# process group, ARS's worker processes included.
+SIGNALS = [(signal.SIGTERM, False), (signal.SIGINT, True), (signal.SIGTERM, True)]
+
+
+@pytest.mark.parametrize(
+    ("signum", "to_group"), SIGNALS, ids=["SIGTERM", "SIGINT-group", "SIGTERM-group"]
+)
 @pytest.mark.parametrize("kind", ["learner", "ablation", "gail", "sac", "ars"])
-def test_a_signal_stops_the_run_at_its_next_checkpoint(tmp_path, hopper_demos, kind, signum):
+def test_a_signal_stops_the_run_at_its_next_checkpoint(
+    tmp_path, hopper_demos, kind, signum, to_group
+):
     run_dir = tmp_path / "run"
     run_dir.mkdir()  # ARS's checkpoint file lives in it
     command, counter = command_of(kind, run_dir, hopper_demos)
@@ -81,9 +90,9 @@ def test_a_signal_stops_the_run_at_its_next_checkpoint(tmp_path, hopper_demos, k
             assert line, f"the run ended early: {process.communicate()[1]}"
             trained += line.startswith(("train", "iteration"))
             last = line if line.startswith("iteration") else last
-        if signum == signal.SIGINT:  # Ctrl-C: the whole process group, workers included
+        if to_group:
             os.killpg(process.pid, signum)
-        else:  # kill PID: the run's own process
+        else:
             process.send_signal(signum)
         _, stderr = process.communicate(timeout=60)
     finally:
