@@ -1469,12 +1469,14 @@ def action_error_along_expert(
     rng = np.random.default_rng(seed)
     errors = [[] for _ in edges[1:]]
 
+    samples = learner.policy.samples_per_state(noise_samples)  # 1 for a deterministic one
+
     def squared_error(states, actions):  # (N, dim s), (N, dim A) -> (N,)
-        repeated = np.repeat(states, noise_samples, axis=0)  # (N*Z, dim s)
-        noise = rng.standard_normal((len(repeated), learner.policy.noise_dim))
-        chosen = learner.policy.act(repeated, noise.astype(repeated.dtype))  # (N*Z, dim A)
-        wrong = (chosen - np.repeat(actions, noise_samples, axis=0)) ** 2
-        return wrong.reshape(len(states), -1).mean(axis=1)
+        # each state shared by `samples` consecutive noise rows, as in the policy step
+        noise = rng.standard_normal((len(states) * samples, learner.policy.noise_dim))
+        chosen = learner.policy.act(states, noise.astype(states.dtype))  # (N * Z, dim A)
+        wrong = (chosen.reshape(len(states), samples, -1) - actions[:, None, :]) ** 2
+        return wrong.mean(axis=(1, 2))
 
     for episode in range(episodes):
         states, actions, _, _ = expert.expert_episode(
