@@ -112,8 +112,6 @@ class Config(RunConfig):
     """Std of Gaussian noise added to executed actions in training (paper: 0; HalfCheetah)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
-    state_clip: float = 0.0
-    """Clip standardised states to [-c, c] for both networks (paper: none; 0: no clip)."""
 
 
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
@@ -473,7 +471,6 @@ class Spaces:
     state_mean: np.ndarray
     state_std: np.ndarray
     absorbing: bool
-    clip: float = 0.0
 
     def to_env_action(self, action: np.ndarray) -> np.ndarray:
         return expert.tanh_to_bounds(action, self.low, self.high)
@@ -486,8 +483,6 @@ class Spaces:
     def state(self, observation: np.ndarray) -> np.ndarray:
         """Network state: standardised observation, plus a 0 indicator when absorbing."""
         s = ((observation - self.state_mean) / self.state_std).astype(np.float32)
-        if self.clip > 0:
-            s = np.clip(s, -self.clip, self.clip)
         if self.absorbing:
             s = np.concatenate([s, np.zeros((*s.shape[:-1], 1), np.float32)], axis=-1)
         return s
@@ -511,7 +506,6 @@ def make_spaces(env, demos: expert.Demos, config: Config) -> Spaces:
         mean.astype(np.float32),
         std.astype(np.float32),
         absorbing=config.termination == "absorbing",
-        clip=config.state_clip,
     )
 
 
@@ -625,7 +619,6 @@ def check_config(config: Config) -> None:
     at_least_one = ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples")
     at_least_one += ("target_samples", "eval_every", "eval_episodes")
     non_negative = ("seed", "demo_seed", "checkpoint_every", "log_every", "exploration_noise")
-    non_negative += ("state_clip",)
     harness.check_numbers(
         config,
         {name: (1, math.inf, "[)") for name in at_least_one}

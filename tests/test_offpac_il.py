@@ -389,15 +389,6 @@ def test_action_scaling_round_trip():
     assert spaces.from_env_action(np.array([9.0, -9.0])).tolist() == [1.0, -1.0]
 
 
-def test_state_clip_bounds_standardised_states_only_when_set():
-    mean, std = np.array([1.0, 0.0], np.float32), np.array([0.5, 2.0], np.float32)
-    observation = np.array([[11.0, -3.0]])  # standardised: (20, -1.5)
-    unclipped = offpac_il.Spaces(np.zeros(1), np.ones(1), mean, std, absorbing=False)
-    clipped = offpac_il.Spaces(np.zeros(1), np.ones(1), mean, std, absorbing=False, clip=5.0)
-    np.testing.assert_allclose(unclipped.state(observation), [[20.0, -1.5]])
-    np.testing.assert_allclose(clipped.state(observation), [[5.0, -1.5]])
-
-
 def hopper_learner(config):
     """An untrained Hopper-v4 learner and its spaces (zero demonstrations: no scaling)."""
     import expert
