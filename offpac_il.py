@@ -109,7 +109,7 @@ class Config(RunConfig):
     policy_expert_states: float = 0.5
     """Fraction of the policy step's states drawn from the demonstrations (paper: 0)."""
     exploration_noise: float = 0.0
-    """Std of Gaussian noise added to executed actions in training (paper: 0; HalfCheetah)."""
+    """Std of Gaussian noise on executed training actions (paper: 0; HalfCheetah, Walker2d: 0.3)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
 
@@ -529,7 +529,7 @@ def run_episode(
     exploration_noise: float = 0.0,
 ) -> tuple[float, int]:
     """One episode with a_t = pi_theta(s_t, z), z ~ N(0, I); stores triplets if `replay`.
-    Returns (true return, length). exploration_noise > 0 (a deviation for HalfCheetah):
+    Returns (true return, length). exploration_noise > 0 (a deviation; HalfCheetah, Walker2d):
     a_t + N(0, sigma^2 I), clipped to [-1, 1], is executed and stored. An unbounded action
     (Ours+GP) is clipped only on its way to the environment; the replay stores it as sampled.
     """
