@@ -24,13 +24,13 @@ failure off (none of these is a setting of offpac_il.py):
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 
 import numpy as np
 
 import expert
+import harness
 import nets
 import offpac_il
 
@@ -128,15 +128,19 @@ def first_updates(
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    """A bad flag or setting ends in one line on stderr and exit status 2."""
+    parser = harness.CommandLineParser(
+        prog="python -m lab.first_updates", description=__doc__.splitlines()[0]
+    )
+    count = harness.positive_int
     parser.add_argument("--env", default="Ant-v4")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--trajectories", type=int, default=4)
-    parser.add_argument("--interactions", type=int, default=3000)
-    parser.add_argument("--every", type=int, default=1000)
+    parser.add_argument("--trajectories", type=count, default=4)
+    parser.add_argument("--interactions", type=count, default=3000)
+    parser.add_argument("--every", type=count, default=1000)
     parser.add_argument("--start", choices=STARTS, default="defaults")
-    parser.add_argument("--bc-steps", type=int, default=3000)
-    parser.add_argument("--noise-samples", type=int, default=8)
+    parser.add_argument("--bc-steps", type=count, default=3000)
+    parser.add_argument("--noise-samples", type=count, default=8)
     parser.add_argument("--policy-lr", type=float, default=offpac_il.Config.policy_lr)
     parser.add_argument("--policy-expert-states", type=float, default=0.5)
     parser.add_argument("--exploration-noise", type=float, default=0.0)
@@ -150,8 +154,12 @@ def main(argv=None) -> int:
         policy_expert_states=args.policy_expert_states,
         exploration_noise=args.exploration_noise,
     )
-    first_updates(config, args.interactions, args.start, args.every, args.bc_steps)
-    return 0
+
+    def body() -> None:
+        offpac_il.check_config(config)
+        first_updates(config, args.interactions, args.start, args.every, args.bc_steps)
+
+    return harness.run_cli(body, at_once=True)
 
 
 if __name__ == "__main__":

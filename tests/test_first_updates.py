@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import assert_one_line_error, run_module
 
 import expert
 import nets
@@ -46,3 +47,16 @@ def test_each_start_runs_and_reports_shares(start, capsys):
     for key in ("sat B", "sat E", "prefers a_E"):
         assert all(0.0 <= row[key] <= 1.0 for row in rows)
     assert "prefers a_E" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (("--interactions", "0"), "--interactions"),
+        (("--start", "warm"), "--start"),
+        (("--policy-expert-states", "2"), "--policy-expert-states"),
+        (("--env", "CartPole-v1"), "Box"),
+    ],
+)
+def test_bad_input_is_one_line_and_status_2(args, fragment):
+    assert_one_line_error(run_module("lab.first_updates", *args, check=False), fragment)
