@@ -39,32 +39,47 @@ STARTS = ("defaults", "bias-corrected", "bc-start", "std-floor")
 
 @dataclasses.dataclass
 class BiasCorrectedRMSProp(nets.RMSProp):
-    """RMSProp whose mean square is divided by 1 - decay^t (t: steps taken)."""
+    """RMSProp whose mean square is divided by c = 1 - decay^t (t: steps taken).
+
+    lr g / (sqrt(ms / c) + eps) = (lr sqrt c) g / (sqrt(ms) + eps sqrt c): nets.RMSProp's
+    own step with the rate and epsilon scaled by sqrt c, on the same mean square.
+    """
 
     steps: int = 0
 
     def step(self, params, grads, lr):
         self.steps += 1
-        correction = 1.0 - self.decay**self.steps
-        for name, grad in grads.items():
-            ms = self.mean_square.setdefault(name, np.zeros_like(params[name]))
-            ms *= self.decay
-            ms += (1.0 - self.decay) * (grad * grad)
-            params[name] -= lr * grad / (np.sqrt(ms / correction) + self.eps)
+        root_c = np.sqrt(1.0 - self.decay**self.steps)
+        plain = nets.RMSProp(self.decay, self.eps * root_c, self.mean_square)
+        plain.step(params, grads, lr * root_c)
+
+
+def cloning_loss_and_grads(policy, states, noise, actions):
+    """Behavioural cloning's loss mean ||tanh(PN([s_E, z])) - a_E||^2 over components, and
+    its gradient w.r.t. PN's parameters. states, noise: (B, dim s), (B, dim z); actions:
+    (B, dim A). Returns (loss, grads)."""
+    predicted, cache = policy.forward(states, noise)  # (B, dim A)
+    error = predicted - actions
+    d_predicted = 2.0 * error / error.size  # d mean(error^2) / d predicted
+    return float((error**2).mean()), policy.backward(d_predicted, cache)
 
 
 def fit_to_demonstrations(policy, expert_buffer, steps: int, rng) -> None:
-    """Behavioural cloning of PN: minimise mean ||tanh(PN(s_E, z)) - a_E||^2, z ~ N(0, I)."""
+    """Behavioural cloning of PN on the demonstrations: RMSProp at rate 1e-3 on
+    `cloning_loss_and_grads`, 64 triplets and one z ~ N(0, I) each per step."""
     optimizer = nets.RMSProp()
     for _ in range(steps):
         rows = rng.integers(len(expert_buffer.states), size=64)
         noise = rng.standard_normal((64, policy.noise_dim), np.float32)
-        actions, cache = policy.forward(expert_buffer.states[rows], noise)
-        d_actions = 2.0 * (actions - expert_buffer.actions[rows]) / actions.size
-        optimizer.step(policy.net.params, policy.backward(d_actions, cache), 1e-3)
+        states, actions = expert_buffer.states[rows], expert_buffer.actions[rows]
+        _, grads = cloning_loss_and_grads(policy, states, noise, actions)
+        optimizer.step(policy.net.params, grads, 1e-3)
 
 
 def measure(learner, expert_buffer, replay, stats, rng) -> dict[str, float]:
+    """The printed columns. Beside offpac_il.imitation_diagnostics, which averages q over
+    the demonstrated states, this compares q(s_E, a_E) and q(s_E, pi) state by state."""
+
     def sampled_actions(states):
         return learner.policy.act(
             states, rng.standard_normal((len(states), learner.policy.noise_dim), np.float32)
