@@ -116,6 +116,16 @@ class SACConfig:
     log_every: float = 60.0
     """Seconds between training progress lines (evaluations always print)."""
 
+    # What `update` reads besides lr, gamma and tau; SAC proper learns everything at one
+    # rate and always learns alpha. The imitation peers (lab/peers.py) set them apart.
+    @property
+    def policy_lr(self) -> float:
+        return self.lr
+
+    @property
+    def learn_alpha(self) -> bool:
+        return True
+
 
 def check_config(config: SACConfig) -> None:
     """Refuse settings that cannot work (NaN anywhere, a count below 1, ...), in one line."""
@@ -377,42 +387,66 @@ class Agent:
             getattr(self, f"{name}_optimizer").load_state(arrays, f"{name}_adam")
 
 
-def update(agent: Agent, batch: Batch, config: SACConfig, rng: np.random.Generator) -> dict:
-    """One gradient step of every learner, in SB3's order (module docstring, steps 1-6)."""
+def bellman_critic_step(
+    agent: Agent,
+    batch: Batch,
+    actions: np.ndarray,
+    log_prob: np.ndarray,
+    alpha: float,
+    config,
+    rng: np.random.Generator,
+) -> tuple[dict, dict, dict]:
+    """SAC's critic step (update's steps 3-4): the soft Bellman targets y, Eq. (2)-(3),
+    from the target critics and a fresh a' ~ pi(.|s'), then each critic's J_Q, Eq. (5)-(6).
+
+    actions, log_prob: a ~ pi(.|s) at the batch's states (unused here; another critic
+    objective, such as IQ-Learn's in lab/peers.py, takes V(s) from them). Returns (q1's
+    gradients, q2's gradients, statistics)."""
+    next_noise = rng.standard_normal(actions.shape, dtype=actions.dtype)
+    targets = critic_targets(
+        agent.target_q1, agent.target_q2, agent.policy, batch, alpha, config.gamma, next_noise
+    )
+    q1_loss, q1_grads, q1_values = critic_loss_and_grads(agent.q1, batch, targets)
+    q2_loss, q2_grads, _ = critic_loss_and_grads(agent.q2, batch, targets)
+    return q1_grads, q2_grads, {"critic_loss": q1_loss + q2_loss, "q_mean": float(q1_values.mean())}
+
+
+def update(
+    agent: Agent, batch: Batch, config, rng: np.random.Generator, critic_step=bellman_critic_step
+) -> dict:
+    """One gradient step of every learner, in SB3's order (module docstring, steps 1-6).
+
+    config: lr (critics and log alpha), policy_lr, learn_alpha, gamma and tau (SACConfig,
+    or a peer's settings). critic_step: steps 3-4, `bellman_critic_step` for SAC."""
     dim_a = batch.actions.shape[1]
     dtype = agent.policy.dtype
     alpha = agent.alpha  # the same alpha in the targets and the policy loss (as SB3)
     # 1. a ~ pi(.|s), Eq. (8); the forward pass is kept for the policy step (5).
     noise = rng.standard_normal((len(batch.rewards), dim_a), dtype=dtype)
     actions, log_prob, sample = sample_actions(agent.policy, batch.observations, noise)
-    # 2. Temperature, Eq. (18).
-    log_alpha = float(agent.log_alpha["log_alpha"][0])
-    _, d_log_alpha = temperature_loss_and_grad(log_alpha, log_prob, agent.target_entropy)
-    agent.alpha_optimizer.step(agent.log_alpha, {"log_alpha": np.array([d_log_alpha])}, config.lr)
-    # 3. Targets, Eq. (2)-(3), from the target critics and a fresh a' ~ pi(.|s').
-    next_noise = rng.standard_normal((len(batch.rewards), dim_a), dtype=dtype)
-    targets = critic_targets(
-        agent.target_q1, agent.target_q2, agent.policy, batch, alpha, config.gamma, next_noise
-    )
-    # 4. Critics, Eq. (5)-(6).
-    q1_loss, q1_grads, q1_values = critic_loss_and_grads(agent.q1, batch, targets)
-    q2_loss, q2_grads, _ = critic_loss_and_grads(agent.q2, batch, targets)
+    # 2. Temperature, Eq. (18), unless it is held at its initial value.
+    if config.learn_alpha:
+        log_alpha = float(agent.log_alpha["log_alpha"][0])
+        _, d_log_alpha = temperature_loss_and_grad(log_alpha, log_prob, agent.target_entropy)
+        d_log_alpha = {"log_alpha": np.array([d_log_alpha])}
+        agent.alpha_optimizer.step(agent.log_alpha, d_log_alpha, config.lr)
+    # 3-4. Critics: SAC's Eq. (2)-(6), or the peer's objective.
+    q1_grads, q2_grads, stats = critic_step(agent, batch, actions, log_prob, alpha, config, rng)
     agent.q1_optimizer.step(agent.q1.params, q1_grads, config.lr)
     agent.q2_optimizer.step(agent.q2.params, q2_grads, config.lr)
     # 5. Policy, Eq. (9)-(10), against the critics just updated.
     policy_loss, policy_grads = policy_loss_and_grads(
         agent.policy, agent.q1, agent.q2, batch.observations, actions, log_prob, sample, alpha
     )
-    agent.policy_optimizer.step(agent.policy.params, policy_grads, config.lr)
+    agent.policy_optimizer.step(agent.policy.params, policy_grads, config.policy_lr)
     # 6. Targets track the critics.
     nets.soft_update(agent.target_q1, agent.q1, config.tau)
     nets.soft_update(agent.target_q2, agent.q2, config.tau)
     return {
-        "critic_loss": q1_loss + q2_loss,
+        **stats,
         "policy_loss": policy_loss,
         "alpha": alpha,
         "entropy": -float(np.mean(log_prob)),  # a one-sample estimate of H(pi(.|s))
-        "q_mean": float(np.mean(q1_values)),
     }
 
 
@@ -557,7 +591,12 @@ REPLAY_SEGMENTS = "replay"  # the folder of the replay buffer's segments in a ru
 
 
 def save_checkpoint(
-    run_dir: Path, agent: Agent, replay: ReplayBuffer, progress: Progress, rng
+    run_dir: Path,
+    agent: Agent,
+    replay: ReplayBuffer,
+    progress: Progress,
+    rng,
+    fields=PROGRESS_FIELDS,
 ) -> None:
     """Everything needed to continue exactly: the replay buffer's new rows in a segment
     of their own, then one atomic checkpoint file (networks, Generator, counters, the
@@ -565,7 +604,7 @@ def save_checkpoint(
     segments = Path(run_dir) / REPLAY_SEGMENTS
     replay.save_new_rows(segments)
     state = {**agent.state(), "replay/added": np.array(replay.added)}
-    harness.save_checkpoint(run_dir, state, rng, progress, PROGRESS_FIELDS)
+    harness.save_checkpoint(run_dir, state, rng, progress, fields)
     replay.prune(segments)
 
 

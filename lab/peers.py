@@ -1,0 +1,371 @@
+"""Off-policy peers on the learner's own demonstrations: SQIL, thin layers on lab/sac.py.
+
+The paper compares its learner with BC (offline) and GAIL (on-policy). The methods a
+reader compares against today are off-policy, maximum-entropy imitation learners built on
+SAC. They answer the question the learner's failures raise: do the same 400 triplets,
+budget and scoring suffice for a method known to imitate? Here:
+
+- SQIL (Reddy, Dragan & Levine, "SQIL: Imitation Learning via Reinforcement Learning with
+  Sparse Rewards", ICLR 2020, https://arxiv.org/abs/1905.11108): SAC whose demonstration
+  transitions carry reward 1 and whose own transitions carry reward 0, each minibatch
+  half from each buffer (its Algorithm 1). **No new gradient**: the critics, the policy
+  and the temperature are SAC's, `sac.update`, every gradient of which is checked in
+  tests/test_sac.py; SQIL only chooses the batch (`sqil_batch`).
+
+What is SAC's (lab/sac.py): the networks, the update, the replay buffer (saved in segments
+so that a run resumes exactly) and the checkpoint. What is the learner's (offpac_il.py):
+the demonstrations, the action scaling and optional state standardisation
+(`offpac_il.make_spaces`), whole episodes (`offpac_il.run_episode`) and the seeded
+evaluation (`offpac_il.evaluate`), so a peer sees, acts and is scored as Ours is.
+
+The loop is Algorithm 1's, as Ours runs it: one episode with the current policy, then as
+many updates as the episode had steps. SAC proper interleaves one update per step; with
+the learning rates held fixed the difference is a policy at most one episode older, and
+it keeps the peers on the learner's schedule (evaluation at the first episode end past
+every `eval_every`). For the first `learning_starts` interactions there are no updates and
+the untrained policy acts: its log sigma starts near 0, so its tanh-Gaussian actions
+spread over [-1, 1] about as widely as SAC's uniform ones (std 0.63 against 0.58).
+
+Evaluation reports both policies: the deterministic tanh(mu(s)) (`normalized_score`, as
+SAC papers report) and the stochastic one (`stochastic_score`), on the same episode seeds.
+
+Settings are those of the SQIL control of the project's record (PyTorch, CleanRL's SAC):
+two hidden layers of 256 units, Adam 3e-4, batch 256 (128 demonstration and 128 replay
+transitions), gamma 0.99, tau 0.005, a learned temperature, 5 000 interactions before the
+first update, no state standardisation (SAC's practice; `--standardize` offers the
+learner's).
+
+    python -m lab.peers sqil --env Ant-v4 [--demos ... --trajectories 4 --sampling sparse]
+    python -m lab.peers sqil --resume RUN_DIR
+
+Files in the run directory: config.json (with "method"), progress.csv, checkpoint.npz and
+replay/ (SAC's segments), policy_final.npz and policy_best.npz (the policy MLP, under
+the key prefix "policy").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+
+import expert
+import harness
+import nets
+import offpac_il
+from harness import UserError
+from lab import sac
+
+# ----------------------------------------------------------------------------------------
+# Settings: one dataclass per method, a --flag per field.
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class PeerConfig(offpac_il.RunConfig):
+    """What the SAC-based peers share: the learner's task, demonstrations, evaluation and
+    run directory (RunConfig), and SAC's settings."""
+
+    standardize: bool = False
+    """Standardise states by the demonstrations' mean and std (+1e-3), as the learner does
+    (off: SAC's practice, and the record's SQIL control)."""
+    total_steps: int = 300_000
+    """Interaction budget (the learner's)."""
+    eval_every: int = 5_000
+    """Interactions between evaluations (the learner's schedule)."""
+    hidden: tuple[int, ...] = (256, 256)
+    """Hidden layer sizes of the policy and of each critic."""
+    lr: float = 3e-4
+    """Adam learning rate of the critics and of log alpha."""
+    policy_lr: float = 3e-4
+    """Adam learning rate of the policy."""
+    batch_size: int = 256
+    """Transitions per update: half from the demonstrations, half from the replay buffer."""
+    replay_size: int = 1_000_000
+    """Capacity of the replay buffer (FIFO)."""
+    gamma: float = 0.99
+    """Discount factor."""
+    tau: float = 0.005
+    """Target critic tracking rate: theta_bar <- tau theta + (1 - tau) theta_bar."""
+    learning_starts: int = 5_000
+    """Interactions before the first update (the untrained policy acts)."""
+    initial_alpha: float = 1.0
+    """Entropy temperature alpha at the start."""
+    learn_alpha: bool = True
+    """Learn alpha towards the target entropy -dim A (SAC's Eq. 18); off: alpha stays."""
+
+
+@dataclass
+class SQILConfig(PeerConfig):
+    """SQIL: SAC with reward 1 on demonstration and 0 on replay transitions."""
+
+
+METHODS = {"sqil": (SQILConfig, "SQIL (Reddy et al. 2020): SAC, demonstrations rewarded 1")}
+# A resumed run may extend its budget (no schedule depends on it) and change what only
+# logging and checkpoints read.
+RESUMABLE_CHANGES = ("total_steps", "checkpoint_every", "log_every")
+
+
+def check_config(config: PeerConfig) -> None:
+    """Refuse settings that cannot work, in one line, before anything is written."""
+    harness.check_choices(config, {"sampling": expert.SAMPLING_MODES})
+    counts = ("trajectories", "total_steps", "eval_every", "eval_episodes", "hidden")
+    counts += ("replay_size", "learning_starts")
+    harness.check_numbers(
+        config,
+        {name: (1, math.inf, "[)") for name in counts}
+        | {name: (0, math.inf, "()") for name in ("lr", "policy_lr", "initial_alpha")}
+        | {name: (0, math.inf, "[)") for name in ("seed", "demo_seed")}
+        | {name: (0, math.inf, "[)") for name in ("checkpoint_every", "log_every")}
+        | {"batch_size": (2, math.inf, "[)"), "gamma": (0, 1, "[)"), "tau": (0, 1, "(]")},
+    )
+
+
+# ----------------------------------------------------------------------------------------
+# SQIL's batch: half demonstrations with reward 1, half replay with reward 0.
+# ----------------------------------------------------------------------------------------
+
+
+def sqil_batch(
+    demonstrations: sac.Batch, replay: sac.ReplayBuffer, rng: np.random.Generator, size: int
+) -> sac.Batch:
+    """size // 2 demonstration transitions (reward 1) on top of the rest from the replay
+    buffer (reward 0, as stored), each drawn uniformly with replacement (SQIL, Alg. 1)."""
+    n_expert = size // 2
+    rows = rng.integers(0, len(demonstrations.rewards), n_expert)
+    expert_rows = sac.Batch(*(getattr(demonstrations, f)[rows] for f in sac.ReplayBuffer.FIELDS))
+    replay_rows = replay.sample(rng, size - n_expert)
+    return sac.Batch(
+        *(
+            np.concatenate([getattr(expert_rows, f), getattr(replay_rows, f)])
+            for f in sac.ReplayBuffer.FIELDS
+        )
+    )
+
+
+def demonstration_batch(expert_buffer: offpac_il.Triplets, reward: float) -> sac.Batch:
+    """Every demonstration transition as SAC's Batch, in the networks' units."""
+    n = len(expert_buffer.states)
+    return sac.Batch(
+        expert_buffer.states,
+        expert_buffer.actions,
+        np.full(n, reward, np.float32),
+        expert_buffer.next_states,
+        expert_buffer.terminal.astype(np.float32),
+    )
+
+
+# ----------------------------------------------------------------------------------------
+# SAC's policy as the learner's episodes and evaluation call it, and its replay buffer.
+# ----------------------------------------------------------------------------------------
+
+
+@dataclass
+class SquashedGaussian:
+    """SAC's policy network with the interface offpac_il.run_episode and evaluate call:
+    act(states, noise) and noise_dim (= dim A: one eps per action component)."""
+
+    network: nets.MLP
+    noise_dim: int
+    deterministic: bool = False
+
+    def act(self, states: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        if self.deterministic:
+            return sac.deterministic_actions(self.network, states)  # tanh(mu(s))
+        return sac.sample_actions(self.network, states, noise)[0]  # tanh(mu + sigma eps)
+
+
+@dataclass
+class Acting:
+    """What offpac_il.run_episode and evaluate take as the learner: its `policy`."""
+
+    policy: SquashedGaussian
+
+
+class ReplayBuffer(sac.ReplayBuffer):
+    """SAC's buffer, filled by offpac_il.run_episode with (s, a, s', terminated) triplets
+    in the networks' units; their reward is 0 (SQIL's reward of the learner's own
+    transitions; another peer does not read it)."""
+
+    def add(self, state, action, next_state, terminal: bool) -> None:
+        super().add(state, action, 0.0, next_state, terminal)
+
+
+# ----------------------------------------------------------------------------------------
+# The run: episodes, updates, evaluation of both policies, checkpoints.
+# ----------------------------------------------------------------------------------------
+
+UPDATE_STATS = ("alpha", "entropy", "critic_loss", "policy_loss", "q_mean")
+PROGRESS_FIELDS = (
+    *("interactions", "wall_seconds", "updates", "episodes", "eval_return_mean"),
+    *("eval_return_std", "normalized_score", "train_return", "eval_falls"),
+    *("stochastic_return_mean", "stochastic_score", "stochastic_falls"),
+    *UPDATE_STATS,
+    *("q_expert", "q_replay", "q_policy_at_expert", "expert_action_error", "saturation"),
+)
+
+
+def diagnostics(agent: sac.Agent, expert_buffer: offpac_il.Triplets, replay, rng) -> dict:
+    """How the critics and the policy see the demonstrations: Q1 at the demonstrated pairs,
+    at replay pairs and at (s_E, tanh(mu(s_E))); the deterministic policy's squared error
+    against a_E; the share of its components beyond 0.99 in magnitude (the policy's corners)."""
+    states, actions = expert_buffer.states, expert_buffer.actions
+    policy_actions = sac.deterministic_actions(agent.policy, states)
+    replay_rows = replay.sample(rng, min(len(states), replay.size))
+
+    def q1(s, a) -> float:
+        return float(agent.q1.forward((s, a))[0].mean())
+
+    return {
+        "q_expert": q1(states, actions),
+        "q_replay": q1(replay_rows.observations, replay_rows.actions),
+        "q_policy_at_expert": q1(states, policy_actions),
+        "expert_action_error": float(((policy_actions - actions) ** 2).mean()),
+        "saturation": float(np.mean(np.abs(policy_actions) > 0.99)),
+    }
+
+
+def train(config: PeerConfig, method: str, resume: bool = False) -> sac.Progress:
+    """Algorithm 1's loop with SAC's update on the method's batch; evaluation and
+    checkpoints as the learner's."""
+    check_config(config)
+    env, eval_env = expert.make_env(config.env), expert.make_env(config.env)
+    demos = expert.load_demos(expert.demo_path(config), config.env)
+    print(demos.describe(), flush=True)
+    spaces = offpac_il.make_spaces(env, demos, offpac_il.Config(standardize=config.standardize))
+    expert_buffer = offpac_il.expert_buffer_from(demos, spaces)
+    demonstrations = demonstration_batch(expert_buffer, reward=1.0)
+    references = expert.references_or_nan(config.env, demos)
+    dim_s, dim_a = expert.env_dimensions(env)
+    rng = np.random.default_rng(config.seed)  # the run's one Generator
+    env.action_space.seed(config.seed)
+    agent = sac.Agent.create(dim_s, dim_a, config, rng)
+    replay = ReplayBuffer(config.replay_size, dim_s, dim_a)
+    run_dir = harness.open_run_dir(
+        config.run_dir or f"runs/{method}-{config.env}-seed{config.seed}", resume
+    )
+    if resume:
+        progress = sac.load_checkpoint(run_dir, agent, replay, rng)
+        print(f"resumed {run_dir} at {progress.interactions} interactions", flush=True)
+    else:
+        progress = sac.Progress()
+        harness.write_text(run_dir / harness.PROGRESS, harness.progress_csv([], PROGRESS_FIELDS))
+    # Rewritten on a resume too: it may have extended the budget.
+    harness.write_config(run_dir, {"method": method, **dataclasses.asdict(config)})
+    clock = harness.Clock(progress, config.checkpoint_every, config.log_every)
+    acting = Acting(SquashedGaussian(agent.policy, dim_a))
+    deterministic = Acting(SquashedGaussian(agent.policy, dim_a, deterministic=True))
+
+    def checkpoint() -> None:
+        harness.check_finite(agent.state(), f"by {progress.interactions} interactions")
+        sac.save_checkpoint(run_dir, agent, replay, progress, rng, PROGRESS_FIELDS)
+        clock.checkpointed()
+
+    def evaluate() -> None:
+        round_index = progress.eval_rounds
+        returns, falls = offpac_il.evaluate(eval_env, deterministic, spaces, config, round_index)
+        sampled, sampled_falls = offpac_il.evaluate(eval_env, acting, spaces, config, round_index)
+        stochastic = float(sampled.mean())
+        measured = {
+            name: total / max(progress.stat_count, 1) for name, total in progress.stat_sums.items()
+        }
+        measured |= {
+            "eval_falls": falls,
+            "stochastic_return_mean": stochastic,
+            "stochastic_score": expert.normalized_score(stochastic, references),
+            "stochastic_falls": sampled_falls,
+        }
+        if replay.size:
+            diagnostics_rng = np.random.default_rng([config.seed, 2, round_index])
+            measured |= diagnostics(agent, expert_buffer, replay, diagnostics_rng)
+        score = expert.normalized_score(float(returns.mean()), references)
+        clock.tick()
+        row = progress.record(returns, score, measured, PROGRESS_FIELDS)
+        progress.stat_sums, progress.stat_count = {}, 0
+        if returns.mean() > progress.best_eval_return:
+            progress.best_eval_return = float(returns.mean())
+            harness.save_arrays(run_dir / "policy_best.npz", agent.policy.state("policy"))
+        print(
+            f"eval  {progress.interactions:>8d} steps  return {returns.mean():8.1f}"
+            f" ± {returns.std():6.1f}  score {row['normalized_score']:6.3f}"
+            f"  stochastic {row['stochastic_score']:6.3f}  alpha {agent.alpha:.4f}"
+            f"  Q_E {harness.shown(row['q_expert'], '.2f')}"
+            f"  Q_B {harness.shown(row['q_replay'], '.2f')}",
+            flush=True,
+        )
+        checkpoint()
+
+    with env, eval_env:
+        while True:
+            if progress.evaluation_due(config.eval_every, config.total_steps):
+                evaluate()
+            if progress.interactions >= config.total_steps:
+                break
+            seed = int(rng.integers(2**31))
+            episode_return, length = offpac_il.run_episode(env, acting, spaces, rng, seed, replay)
+            progress.recent_returns.append(episode_return)
+            progress.episodes += 1
+            progress.interactions += length
+            updates = min(length, max(0, progress.interactions - config.learning_starts))
+            for _ in range(updates):
+                batch = sqil_batch(demonstrations, replay, rng, config.batch_size)
+                stats = sac.update(agent, batch, config, rng)
+                progress.updates += 1
+                for name in UPDATE_STATS:
+                    progress.stat_sums[name] = progress.stat_sums.get(name, 0.0) + stats[name]
+                progress.stat_count += 1
+
+            clock.tick()
+            if clock.log_due():
+                score = expert.normalized_score(episode_return, references)
+                print(
+                    f"train {progress.interactions:>8d} steps  return {episode_return:8.1f}"
+                    f" ({length:4d} steps)  score {score:6.3f}  alpha {agent.alpha:.4f}"
+                    f"  ETA {clock.eta_minutes(config.total_steps):6.1f} min",
+                    flush=True,
+                )
+            if clock.checkpoint_due():
+                checkpoint()
+                harness.stop_if_requested()
+
+    harness.save_arrays(run_dir / "policy_final.npz", agent.policy.state("policy"))
+    return progress
+
+
+# ----------------------------------------------------------------------------------------
+# Command line: python -m lab.peers METHOD [flags], one flag per field of its dataclass.
+# ----------------------------------------------------------------------------------------
+
+USAGE = f"usage: python -m lab.peers {{{','.join(METHODS)}}} [--help] [flags]"
+
+
+def parse(argv: list[str]) -> tuple[PeerConfig, str, bool]:
+    """(config, method, resume). A resume must name the method that made the run."""
+    if not argv or argv[0] in ("-h", "--help"):
+        print(USAGE)
+        for name, (_, summary) in METHODS.items():
+            print(f"  {name:10s} {summary}")
+        raise SystemExit(0 if argv else 2)
+    method, argv = argv[0], argv[1:]
+    if method not in METHODS:
+        raise UserError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    config_class, summary = METHODS[method]
+    config, resume = harness.config_from_command_line(
+        argv, config_class, summary, {}, RESUMABLE_CHANGES
+    )
+    if resume:
+        made_by = harness.read_config(config.run_dir).get("method")
+        if made_by != method:
+            raise UserError(f"{config.run_dir} is not a {method} run (its method: {made_by})")
+    return config, method, resume
+
+
+def main(argv: list[str] | None = None) -> int:
+    return harness.cli_main(argv, parse, lambda parsed, argv: train(*parsed))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
