@@ -1,4 +1,4 @@
-"""Off-policy peers on the learner's own demonstrations: SQIL, thin layers on lab/sac.py.
+"""Off-policy peers on the learner's own demonstrations: SQIL and IQ-Learn, on lab/sac.py.
 
 The paper compares its learner with BC (offline) and GAIL (on-policy). The methods a
 reader compares against today are off-policy, maximum-entropy imitation learners built on
@@ -10,7 +10,15 @@ budget and scoring suffice for a method known to imitate? Here:
   transitions carry reward 1 and whose own transitions carry reward 0, each minibatch
   half from each buffer (its Algorithm 1). **No new gradient**: the critics, the policy
   and the temperature are SAC's, `sac.update`, every gradient of which is checked in
-  tests/test_sac.py; SQIL only chooses the batch (`sqil_batch`).
+  tests/test_sac.py; SQIL only chooses the batch (`mixed_batch`) and its rewards.
+- IQ-Learn (Garg, Chakraborty, Cundy, Song & Ermon, "IQ-Learn: Inverse soft-Q Learning for
+  Imitation", NeurIPS 2021, https://arxiv.org/abs/2106.12142): SAC whose critics are
+  trained by the inverse soft-Q objective with the chi-squared regulariser, in the online
+  "value" and "v0" forms of its Eq. (10) and of its code (Div99/IQ-Learn, iq.py); the
+  actor is SAC's, against the same critics, and the temperature stays at its initial
+  value as in the authors' MuJoCo settings. Its critic objective is new here:
+  `iq_learn_loss_and_grads` derives and computes its gradient, checked against finite
+  differences in tests/test_peers.py.
 
 What is SAC's (lab/sac.py): the networks, the update, the replay buffer (saved in segments
 so that a run resumes exactly) and the checkpoint. What is the learner's (offpac_il.py):
@@ -35,7 +43,18 @@ transitions), gamma 0.99, tau 0.005, a learned temperature, 5 000 interactions b
 first update, no state standardisation (SAC's practice; `--standardize` offers the
 learner's).
 
+IQ-Learn's defaults are its authors' for MuJoCo (Div99/IQ-Learn: conf/agent/sac.yaml,
+scripts/run_mujoco.sh): two hidden layers of 256 units, critic rate 3e-4, actor rate 3e-5,
+a fixed temperature 1e-2, twin critics and their minimum, batches of 256 demonstration and
+256 replay transitions, target critics (tau 0.005), updates from 1 280 stored interactions,
+chi-squared weight 1/(4 * 0.5). Per task they choose the form of the value term and the
+temperature: `--value-loss v0` on Hopper, Walker2d and Humanoid (Humanoid also
+`--initial-alpha 1`), `value` on HalfCheetah and Ant (Ant also `--initial-alpha 1e-3`).
+Where they differ from the authors' code: the authors' Ant uses a single critic, and their
+log sigma is squashed into [-5, 2] where SAC here clips it to [-20, 2].
+
     python -m lab.peers sqil --env Ant-v4 [--demos ... --trajectories 4 --sampling sparse]
+    python -m lab.peers iq-learn --env Ant-v4 --value-loss value --initial-alpha 1e-3
     python -m lab.peers sqil --resume RUN_DIR
 
 Files in the run directory: config.json (with "method"), progress.csv, checkpoint.npz and
@@ -103,7 +122,30 @@ class SQILConfig(PeerConfig):
     """SQIL: SAC with reward 1 on demonstration and 0 on replay transitions."""
 
 
-METHODS = {"sqil": (SQILConfig, "SQIL (Reddy et al. 2020): SAC, demonstrations rewarded 1")}
+VALUE_LOSSES = ("value", "v0")
+
+
+@dataclass
+class IQLearnConfig(PeerConfig):
+    """IQ-Learn: SAC whose critics minimise the inverse soft-Q objective (authors' settings)."""
+
+    policy_lr: float = 3e-5
+    """Adam learning rate of the policy."""
+    batch_size: int = 512
+    """Transitions per update: half from the demonstrations, half from the replay buffer."""
+    learning_starts: int = 1_280
+    """Interactions before the first update (the untrained policy acts)."""
+    initial_alpha: float = 1e-2
+    """Entropy temperature alpha (fixed unless --learn-alpha)."""
+    learn_alpha: bool = False
+    """Learn alpha towards the target entropy -dim A (SAC's Eq. 18); off: alpha stays."""
+    value_loss: str = "value"
+    """The value term: value, E over all rows of V(s) - gamma V(s'); v0, (1 - gamma) E over
+    the demonstrated states of V(s)."""
+    chi2_alpha: float = 0.5
+    """The chi-squared regulariser's alpha: the squared residuals weigh 1/(4 alpha)."""
+
+
 # A resumed run may extend its budget (no schedule depends on it) and change what only
 # logging and checkpoints read.
 RESUMABLE_CHANGES = ("total_steps", "checkpoint_every", "log_every")
@@ -112,6 +154,9 @@ RESUMABLE_CHANGES = ("total_steps", "checkpoint_every", "log_every")
 def check_config(config: PeerConfig) -> None:
     """Refuse settings that cannot work, in one line, before anything is written."""
     harness.check_choices(config, {"sampling": expert.SAMPLING_MODES})
+    if isinstance(config, IQLearnConfig):
+        harness.check_choices(config, {"value_loss": VALUE_LOSSES})
+        harness.check_numbers(config, {"chi2_alpha": (0, math.inf, "()")})
     counts = ("trajectories", "total_steps", "eval_every", "eval_episodes", "hidden")
     counts += ("replay_size", "learning_starts")
     harness.check_numbers(
@@ -125,15 +170,16 @@ def check_config(config: PeerConfig) -> None:
 
 
 # ----------------------------------------------------------------------------------------
-# SQIL's batch: half demonstrations with reward 1, half replay with reward 0.
+# The batch: half demonstrations, half replay (both peers).
 # ----------------------------------------------------------------------------------------
 
 
-def sqil_batch(
+def mixed_batch(
     demonstrations: sac.Batch, replay: sac.ReplayBuffer, rng: np.random.Generator, size: int
 ) -> sac.Batch:
-    """size // 2 demonstration transitions (reward 1) on top of the rest from the replay
-    buffer (reward 0, as stored), each drawn uniformly with replacement (SQIL, Alg. 1)."""
+    """size // 2 demonstration transitions first, then the rest from the replay buffer,
+    each drawn uniformly with replacement (SQIL's Alg. 1; IQ-Learn's code). Their rewards
+    are the buffers': for SQIL 1 and 0, for IQ-Learn 0 (it learns no reward)."""
     n_expert = size // 2
     rows = rng.integers(0, len(demonstrations.rewards), n_expert)
     expert_rows = sac.Batch(*(getattr(demonstrations, f)[rows] for f in sac.ReplayBuffer.FIELDS))
@@ -156,6 +202,144 @@ def demonstration_batch(expert_buffer: offpac_il.Triplets, reward: float) -> sac
         expert_buffer.next_states,
         expert_buffer.terminal.astype(np.float32),
     )
+
+
+# ----------------------------------------------------------------------------------------
+# IQ-Learn's critic objective and its gradient.
+# ----------------------------------------------------------------------------------------
+
+
+def iq_learn_loss_and_grads(
+    q1: nets.MLP,
+    q2: nets.MLP,
+    batch: sac.Batch,
+    policy_actions: np.ndarray,
+    policy_log_prob: np.ndarray,
+    y: np.ndarray,
+    alpha: float,
+    n_expert: int,
+    value_loss: str,
+    chi2_alpha: float,
+    gamma: float,
+):
+    """IQ-Learn's online critic loss with the chi-squared regulariser, and its gradient.
+
+    Rows 0..n_E-1 of `batch` are demonstrations (E), the other n_B replay transitions (B),
+    N = n_E + n_B. Per row r, with everything that is not a critic output held fixed:
+        y_r   = gamma (1 - d_r) V_bar(s'_r)             target critics, no gradient
+        Q_i   = Q_i(s_r, a_r)                            critic i at the stored pair
+        P_r   = min(Q_1, Q_2)(s_r, a~_r),  a~_r ~ pi(.|s_r)   (policy_actions)
+        V_r   = P_r - alpha log pi(a~_r|s_r)             the soft value, Eq. (2) of SAC
+    The loss averages the two critics' losses of the authors' code (iq.py, twin critics):
+        L = 1/2 sum_i [ -1/n_E sum_E (Q_i - y) + c/N sum_E (Q_i - y)^2 ]      Eq. (10)'s
+            + c/N sum_B (P - y)^2                                              first term,
+            + value term                                                       regulariser
+    with c = 1/(4 chi2_alpha) (the chi-squared divergence's regulariser, its Sec. 5.1,
+    taken at the demonstrations' pairs and at the policy's own actions on replay states),
+    and the value term (Eq. 10's second term, two of its estimators):
+        value: 1/N sum_all (V - y)        v0: (1 - gamma)/n_E sum_E V.
+    The gradient with respect to the critics' outputs:
+        dL/dQ_i,r = 1/2 (-1/n_E + 2 c (Q_i,r - y_r)/N)          r in E, else 0
+        dL/dP_r   = 2 c (P_r - y_r)/N [r in B] + (value: 1/N;  v0: (1 - gamma)/n_E [r in E])
+    and dP_r reaches only the critic attaining the minimum on that row (dV/dP = 1: the
+    entropy term is fixed here). Each critic is run once on the 2N stacked inputs
+    [(s, a); (s, a~)] and backpropagated once. Returns (loss, q1 grads, q2 grads, stats).
+    """
+    n_rows = len(y)
+    expert = np.arange(n_rows) < n_expert  # (N,)
+    c = 1.0 / (4.0 * chi2_alpha)
+    states = np.concatenate([batch.observations, batch.observations])  # (2N, dim S)
+    actions = np.concatenate([batch.actions, policy_actions])  # (2N, dim A)
+    out1, cache1 = q1.forward((states, actions))  # (2N, 1)
+    out2, cache2 = q2.forward((states, actions))  # (2N, 1)
+    q_data = (out1[:n_rows, 0], out2[:n_rows, 0])  # Q_i(s, a), (N,) each
+    first_is_min = out1[n_rows:, 0] <= out2[n_rows:, 0]  # (N,)
+    p = np.where(first_is_min, out1[n_rows:, 0], out2[n_rows:, 0])  # P = min Q(s, a~)
+    v = p - alpha * policy_log_prob  # (N,)
+
+    loss = 0.0
+    d_data = []
+    for q in q_data:
+        residual = (q - y)[expert]  # (n_E,)
+        loss += 0.5 * (-float(residual.mean()) + c * float(residual @ residual) / n_rows)
+        d_q = np.zeros(n_rows, q.dtype)
+        d_q[expert] = 0.5 * (-1.0 / n_expert + 2.0 * c * residual / n_rows)
+        d_data.append(d_q)
+    policy_residual = (p - y)[~expert]  # (n_B,)
+    loss += c * float(policy_residual @ policy_residual) / n_rows
+    d_p = np.zeros(n_rows, p.dtype)
+    d_p[~expert] = 2.0 * c * policy_residual / n_rows
+    if value_loss == "value":
+        loss += float((v - y).mean())
+        d_p += 1.0 / n_rows
+    else:  # v0: the demonstrated states stand in for the initial ones (authors' code)
+        loss += (1.0 - gamma) * float(v[expert].mean())
+        d_p[expert] += (1.0 - gamma) / n_expert
+    grads = []
+    for mlp, cache, d_q, is_min in (
+        (q1, cache1, d_data[0], first_is_min),
+        (q2, cache2, d_data[1], ~first_is_min),
+    ):
+        d_out = np.concatenate([d_q, np.where(is_min, d_p, 0.0)])[:, None]  # (2N, 1)
+        grads.append(mlp.backward(d_out.astype(mlp.dtype), cache, input_grads=False)[1])
+    stats = {
+        "critic_loss": loss,
+        "q_mean": float(q_data[0].mean()),
+        # IQ-Learn's implicit reward r = Q(s, a) - gamma V_bar(s') on each kind of row.
+        "reward_expert": float((q_data[0] - y)[expert].mean()),
+        "reward_replay": float((q_data[0] - y)[~expert].mean()),
+    }
+    return loss, grads[0], grads[1], stats
+
+
+def iq_learn_critic_step(agent, batch, actions, log_prob, alpha, config, rng):
+    """sac.update's critic step for IQ-Learn: y from the target critics and a fresh
+    a' ~ pi(.|s') (sac.critic_targets, the batch's rewards being 0), then the loss above
+    at the update's own a~ ~ pi(.|s) and log pi."""
+    next_noise = rng.standard_normal(actions.shape, dtype=actions.dtype)
+    y = sac.critic_targets(
+        agent.target_q1, agent.target_q2, agent.policy, batch, alpha, config.gamma, next_noise
+    )
+    _, q1_grads, q2_grads, stats = iq_learn_loss_and_grads(
+        agent.q1,
+        agent.q2,
+        batch,
+        actions,
+        log_prob,
+        y,
+        alpha,
+        len(y) // 2,  # mixed_batch's demonstrations come first
+        config.value_loss,
+        config.chi2_alpha,
+        config.gamma,
+    )
+    return q1_grads, q2_grads, stats
+
+
+@dataclass(frozen=True)
+class Method:
+    """What sets a peer apart: its settings, the demonstrations' reward, its critic step."""
+
+    config_class: type
+    summary: str
+    demonstration_reward: float
+    critic_step: object  # sac.update's steps 3-4
+
+
+METHODS = {
+    "sqil": Method(
+        SQILConfig,
+        "SQIL (Reddy et al. 2020): SAC, demonstrations rewarded 1, replay 0",
+        1.0,
+        sac.bellman_critic_step,
+    ),
+    "iq-learn": Method(
+        IQLearnConfig,
+        "IQ-Learn (Garg et al. 2021): SAC whose critics minimise the inverse soft-Q objective",
+        0.0,
+        iq_learn_critic_step,
+    ),
+}
 
 
 # ----------------------------------------------------------------------------------------
@@ -199,6 +383,7 @@ class ReplayBuffer(sac.ReplayBuffer):
 # ----------------------------------------------------------------------------------------
 
 UPDATE_STATS = ("alpha", "entropy", "critic_loss", "policy_loss", "q_mean")
+UPDATE_STATS += ("reward_expert", "reward_replay")  # IQ-Learn's implicit reward
 PROGRESS_FIELDS = (
     *("interactions", "wall_seconds", "updates", "episodes", "eval_return_mean"),
     *("eval_return_std", "normalized_score", "train_return", "eval_falls"),
@@ -237,7 +422,7 @@ def train(config: PeerConfig, method: str, resume: bool = False) -> sac.Progress
     print(demos.describe(), flush=True)
     spaces = offpac_il.make_spaces(env, demos, offpac_il.Config(standardize=config.standardize))
     expert_buffer = offpac_il.expert_buffer_from(demos, spaces)
-    demonstrations = demonstration_batch(expert_buffer, reward=1.0)
+    demonstrations = demonstration_batch(expert_buffer, METHODS[method].demonstration_reward)
     references = expert.references_or_nan(config.env, demos)
     dim_s, dim_a = expert.env_dimensions(env)
     rng = np.random.default_rng(config.seed)  # the run's one Generator
@@ -311,10 +496,10 @@ def train(config: PeerConfig, method: str, resume: bool = False) -> sac.Progress
             progress.interactions += length
             updates = min(length, max(0, progress.interactions - config.learning_starts))
             for _ in range(updates):
-                batch = sqil_batch(demonstrations, replay, rng, config.batch_size)
-                stats = sac.update(agent, batch, config, rng)
+                batch = mixed_batch(demonstrations, replay, rng, config.batch_size)
+                stats = sac.update(agent, batch, config, rng, METHODS[method].critic_step)
                 progress.updates += 1
-                for name in UPDATE_STATS:
+                for name in (name for name in UPDATE_STATS if name in stats):
                     progress.stat_sums[name] = progress.stat_sums.get(name, 0.0) + stats[name]
                 progress.stat_count += 1
 
@@ -346,15 +531,14 @@ def parse(argv: list[str]) -> tuple[PeerConfig, str, bool]:
     """(config, method, resume). A resume must name the method that made the run."""
     if not argv or argv[0] in ("-h", "--help"):
         print(USAGE)
-        for name, (_, summary) in METHODS.items():
-            print(f"  {name:10s} {summary}")
+        for name, known in METHODS.items():
+            print(f"  {name:10s} {known.summary}")
         raise SystemExit(0 if argv else 2)
     method, argv = argv[0], argv[1:]
     if method not in METHODS:
         raise UserError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    config_class, summary = METHODS[method]
     config, resume = harness.config_from_command_line(
-        argv, config_class, summary, {}, RESUMABLE_CHANGES
+        argv, METHODS[method].config_class, METHODS[method].summary, {}, RESUMABLE_CHANGES
     )
     if resume:
         made_by = harness.read_config(config.run_dir).get("method")

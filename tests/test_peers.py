@@ -1,7 +1,11 @@
-"""lab/peers.py: SQIL's batch, a tiny run that resumes exactly, and the command line.
+"""lab/peers.py: the mixed batch, IQ-Learn's critic gradient, tiny runs that resume
+exactly, and the command line.
 
 SQIL has no gradient of its own (its update is sac.update, checked in tests/test_sac.py);
-what is SQIL's is the batch: which rows, with which rewards.
+what is SQIL's is the batch: which rows, with which rewards. IQ-Learn's critic objective
+is new: its value is checked against the authors' formulation written out directly, and
+its gradient against centred finite differences in float64, the check shown to catch two
+plausible mistakes.
 """
 
 from __future__ import annotations
@@ -14,6 +18,10 @@ import time
 import numpy as np
 import pytest
 from helpers import ROOT, assert_one_line_error, read_rows, run_module
+from hypothesis import assume, given
+from hypothesis import strategies as st
+from test_offpac_il import away_from_kinks
+from test_sac import DIM_A, DIM_S, check_params, random_batch, tiny_net
 
 import harness
 import offpac_il
@@ -24,14 +32,14 @@ TINY += ["--total-steps", "600", "--eval-every", "200", "--learning-starts", "10
 TINY += ["--checkpoint-every", "0", "--log-every", "0"]
 
 
-def tiny_config(run_dir, demos, seed=0) -> peers.SQILConfig:
-    argv = ["sqil", *TINY, "--demos", str(demos), "--seed", str(seed), "--run-dir", str(run_dir)]
-    config, method, resume = peers.parse(argv)
-    assert (method, resume) == ("sqil", False)
+def tiny_config(run_dir, demos, seed=0, method="sqil") -> peers.PeerConfig:
+    argv = [method, *TINY, "--demos", str(demos), "--seed", str(seed), "--run-dir", str(run_dir)]
+    config, parsed_method, resume = peers.parse(argv)
+    assert (parsed_method, resume) == (method, False)
     return config
 
 
-def test_sqil_batch_takes_half_from_each_buffer_with_rewards_1_and_0():
+def test_mixed_batch_takes_half_from_each_buffer_with_their_rewards():
     rng = np.random.default_rng(0)
     dim_s, dim_a, n_demos = 3, 2, 7
     expert_buffer = offpac_il.Triplets(
@@ -44,7 +52,7 @@ def test_sqil_batch_takes_half_from_each_buffer_with_rewards_1_and_0():
     replay = peers.ReplayBuffer(50, dim_s, dim_a)
     for _ in range(20):
         replay.add(rng.standard_normal(dim_s), rng.uniform(-1, 1, dim_a), rng.normal(size=3), 0)
-    batch = peers.sqil_batch(demonstrations, replay, rng, 11)
+    batch = peers.mixed_batch(demonstrations, replay, rng, 11)
     assert len(batch.rewards) == 11
     np.testing.assert_array_equal(batch.rewards, [1.0] * 5 + [0.0] * 6)
     # Each row is a whole transition of the buffer its reward says it came from.
@@ -64,6 +72,150 @@ def test_sqil_batch_takes_half_from_each_buffer_with_rewards_1_and_0():
             )
 
 
+# ---------------------------------------------------------------------------------------
+# IQ-Learn's critic objective.
+# ---------------------------------------------------------------------------------------
+
+
+def iq_case(seed, n_expert, n_replay, hidden):
+    """Tiny float64 twin critics and a batch; `smooth` is False where a finite-difference
+    step could cross a leaky-ReLU kink or swap which critic is the minimum."""
+    rng = np.random.default_rng(seed)
+    q1 = tiny_net(rng, [DIM_S + DIM_A, *hidden, 1])
+    q2 = tiny_net(rng, [DIM_S + DIM_A, *hidden, 1])
+    n = n_expert + n_replay
+    batch = random_batch(rng, n)
+    case = dict(
+        batch=batch,
+        policy_actions=rng.uniform(-1, 1, (n, DIM_A)),
+        policy_log_prob=rng.normal(scale=2.0, size=n),
+        y=rng.normal(scale=2.0, size=n),
+        alpha=float(rng.uniform(0.01, 1.0)),
+        n_expert=n_expert,
+        chi2_alpha=float(rng.uniform(0.2, 2.0)),
+        gamma=float(rng.uniform(0.5, 0.99)),
+    )
+    states = np.concatenate([batch.observations, batch.observations])
+    actions = np.concatenate([batch.actions, case["policy_actions"]])
+    out1, cache1 = q1.forward((states, actions))
+    out2, cache2 = q2.forward((states, actions))
+    smooth = away_from_kinks(cache1, cache2) and np.abs(out1[n:] - out2[n:]).min() > 1e-2
+    return q1, q2, case, smooth
+
+
+def iq_loss_by_definition(
+    q1,
+    q2,
+    value_loss,
+    batch,
+    policy_actions,
+    policy_log_prob,
+    y,
+    alpha,
+    n_expert,
+    chi2_alpha,
+    gamma,
+) -> float:
+    """The authors' formulation (iq.py, twin critics, regularize=True), term by term:
+    L = 1/2 (L_1 + L_2), L_i = -mean_E(Q_i - y) + value term
+    + 1/(4 chi2_alpha) mean over [(Q_i - y) on E; (min Q(s, a~) - y) on B] of the square."""
+    expert = np.arange(len(y)) < n_expert
+    p = np.minimum(
+        q1.forward((batch.observations, policy_actions))[0][:, 0],
+        q2.forward((batch.observations, policy_actions))[0][:, 0],
+    )
+    v = p - alpha * policy_log_prob
+    if value_loss == "value":
+        value_term = np.mean(v - y)
+    else:
+        value_term = (1 - gamma) * np.mean(v[expert])
+    losses = []
+    for critic in (q1, q2):
+        q = critic.forward((batch.observations, batch.actions))[0][:, 0]
+        regularised = np.concatenate([(q - y)[expert], (p - y)[~expert]])
+        losses.append(
+            -np.mean((q - y)[expert]) + value_term + np.mean(regularised**2) / (4 * chi2_alpha)
+        )
+    return 0.5 * (losses[0] + losses[1])
+
+
+@given(
+    seed=st.integers(0, 2**16),
+    n_expert=st.integers(1, 4),
+    n_replay=st.integers(1, 4),
+    hidden=st.lists(st.integers(2, 6), min_size=1, max_size=2),
+    value_loss=st.sampled_from(peers.VALUE_LOSSES),
+)
+def test_iq_learn_critic_loss_and_gradient(seed, n_expert, n_replay, hidden, value_loss):
+    q1, q2, case, smooth = iq_case(seed, n_expert, n_replay, hidden)
+    assume(smooth)
+    loss, grads1, grads2, stats = peers.iq_learn_loss_and_grads(
+        q1, q2, value_loss=value_loss, **case
+    )
+    assert loss == pytest.approx(iq_loss_by_definition(q1, q2, value_loss, **case), rel=1e-10)
+
+    def f():
+        return peers.iq_learn_loss_and_grads(q1, q2, value_loss=value_loss, **case)[0]
+
+    check_params(f, grads1, q1, f"IQ-Learn ({value_loss}) Q1")
+    check_params(f, grads2, q2, f"IQ-Learn ({value_loss}) Q2")
+
+
+def test_iq_learn_gradient_check_catches_wrong_gradients():
+    """Two plausible mistakes fail the check: the twin critics' losses summed instead of
+    averaged (the gradient doubled), and the other form's value term."""
+    for seed in range(100):
+        q1, q2, case, smooth = iq_case(seed, 3, 3, [5])
+        if smooth:
+            break
+    assert smooth
+
+    def f():
+        return peers.iq_learn_loss_and_grads(q1, q2, value_loss="value", **case)[0]
+
+    def check_both(grads1, grads2):
+        check_params(f, grads1, q1, "Q1")
+        check_params(f, grads2, q2, "Q2")
+
+    _, *right, _ = peers.iq_learn_loss_and_grads(q1, q2, value_loss="value", **case)
+    _, *other_form, _ = peers.iq_learn_loss_and_grads(q1, q2, value_loss="v0", **case)
+    check_both(*right)
+    doubled = [{key: 2.0 * value for key, value in grads.items()} for grads in right]
+    for wrong in (doubled, other_form):
+        with pytest.raises(AssertionError, match="relative error"):
+            check_both(*wrong)
+
+
+def test_iq_learn_critic_step_uses_the_target_critics_bootstrap():
+    """y = gamma (1 - d) V_bar(s') with the batch's zero rewards: the step's gradient is the
+    loss's at sac.critic_targets' y, drawn from the same noise."""
+    rng = np.random.default_rng(5)
+    config = peers.IQLearnConfig(hidden=(6,), value_loss="v0")
+    agent = sac.Agent.create(DIM_S, DIM_A, config, rng, dtype=np.float64)
+    batch = random_batch(rng, 6)
+    batch.rewards[:] = 0.0
+    actions, log_prob = rng.uniform(-1, 1, (6, DIM_A)), rng.normal(size=6)
+    grads1, grads2, _ = peers.iq_learn_critic_step(
+        agent, batch, actions, log_prob, 0.1, config, np.random.default_rng(9)
+    )
+    next_noise = np.random.default_rng(9).standard_normal(actions.shape)
+    y = sac.critic_targets(
+        agent.target_q1, agent.target_q2, agent.policy, batch, 0.1, config.gamma, next_noise
+    )
+    assert np.all(y[batch.terminated == 1] == 0.0)
+    _, expected1, expected2, _ = peers.iq_learn_loss_and_grads(
+        agent.q1, agent.q2, batch, actions, log_prob, y, 0.1, 3, "v0", 0.5, config.gamma
+    )
+    for got, expected in ((grads1, expected1), (grads2, expected2)):
+        for key in expected:
+            np.testing.assert_array_equal(got[key], expected[key])
+
+
+# ---------------------------------------------------------------------------------------
+# Tiny runs and the command line.
+# ---------------------------------------------------------------------------------------
+
+
 def interrupted_after(updates: int):
     """sac.update, raising as a kill would once `updates` updates ran."""
     original, calls = sac.update, {"n": 0}
@@ -81,17 +233,18 @@ def progress_rows(run_dir):
     return read_rows(run_dir / "progress.csv", drop=("wall_seconds",))
 
 
-def test_sqil_run_resumes_exactly(tmp_path, hopper_demos, monkeypatch):
+@pytest.mark.parametrize("method", list(peers.METHODS))
+def test_run_resumes_exactly(tmp_path, hopper_demos, monkeypatch, method):
     whole, other, interrupted = tmp_path / "whole", tmp_path / "other", tmp_path / "cut"
-    peers.train(tiny_config(whole, hopper_demos), "sqil")
-    peers.train(tiny_config(other, hopper_demos, seed=1), "sqil")
+    peers.train(tiny_config(whole, hopper_demos, method=method), method)
+    peers.train(tiny_config(other, hopper_demos, seed=1, method=method), method)
     with monkeypatch.context() as patch:
         patch.setattr(sac, "update", interrupted_after(250))
         with pytest.raises(KeyboardInterrupt):
-            peers.train(tiny_config(interrupted, hopper_demos), "sqil")
+            peers.train(tiny_config(interrupted, hopper_demos, method=method), method)
     partial = progress_rows(interrupted)
     assert 0 < len(partial) < len(progress_rows(whole))
-    peers.train(tiny_config(interrupted, hopper_demos), "sqil", resume=True)
+    peers.train(tiny_config(interrupted, hopper_demos, method=method), method, resume=True)
 
     expected = progress_rows(whole)
     assert [int(row["interactions"]) // 200 for row in expected] == [0, 1, 2, 3]
@@ -103,7 +256,7 @@ def test_sqil_run_resumes_exactly(tmp_path, hopper_demos, monkeypatch):
     for name, value in harness.load_arrays(interrupted / "policy_final.npz").items():
         np.testing.assert_array_equal(value, final[name], err_msg=name)
     saved = json.loads((whole / "config.json").read_text())
-    assert saved["method"] == "sqil" and saved["standardize"] is False
+    assert saved["method"] == method and saved["standardize"] is False
 
 
 def test_command_line_help_resume_and_refusals(tmp_path, hopper_demos):
