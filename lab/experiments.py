@@ -84,11 +84,14 @@ LOG_FILE = "sweep.log"  # the run's stdout and stderr, one block per attempt
 # the script's --help, so a method whose script or flag does not exist is reported and
 # skipped, never faked.
 LEARNER, ABLATIONS_SCRIPT, BASELINES = "offpac_il.py", "lab/ablations.py", "lab/baselines.py"
+PEERS = "lab/peers.py"  # the off-policy peers on SAC (not in the paper)
 METHODS: dict[str, tuple[str, tuple[str, ...]]] = {
     "Ours": (LEARNER, ()),
     "BC": (BASELINES, ("bc",)),
     "GAIL": (BASELINES, ("gail",)),
     "BC+GAIL": (BASELINES, ("bc-gail",)),
+    "SQIL": (PEERS, ("sqil",)),
+    "IQ-Learn": (PEERS, ("iq-learn",)),
     "Ours+OnP": (ABLATIONS_SCRIPT, ("--on-policy",)),
     "Ours+IRL(D)": (ABLATIONS_SCRIPT, ("--reward-learning", "discriminator")),
     "Ours+IRL(E)": (ABLATIONS_SCRIPT, ("--reward-learning", "entropy")),
@@ -98,7 +101,8 @@ METHODS: dict[str, tuple[str, tuple[str, ...]]] = {
 # A method that starts from another's finished run of the same setting:
 # name -> (that method, the flag that names its run directory).
 STARTS_FROM = {"BC+GAIL": ("BC", "--bc-init")}
-COMPARED = ("Ours", "BC", "GAIL", "BC+GAIL")  # Figures 2 and 3 (Sec. 5.2)
+# Figures 2 and 3: the paper's (Sec. 5.2), then the off-policy peers.
+COMPARED = ("Ours", "BC", "GAIL", "BC+GAIL", "SQIL", "IQ-Learn")
 ABLATIONS = ("Ours+OnP", "Ours+IRL(D)", "Ours+IRL(E)", "Ours+GP", "Ours+DP")  # Figure 4
 
 # Quick mode: configurations that train in a few seconds each on 2 cores. They show that
@@ -112,6 +116,10 @@ QUICK_ARGS: dict[str, tuple[str, ...]] = {
     BASELINES: ("--total-steps", "300", "--eval-every", "100", "--eval-episodes", "1"),
 }
 QUICK_ARGS[ABLATIONS_SCRIPT] = QUICK_ARGS[LEARNER]
+QUICK_ARGS[PEERS] = (
+    *QUICK_ARGS[BASELINES],
+    *("--hidden", "16", "16", "--batch-size", "16", "--learning-starts", "100"),
+)
 
 
 def resolve(path) -> Path:
@@ -624,12 +632,12 @@ def selector_settings(selector: Sequence[str]) -> dict:
 
 
 def method_of(config: dict) -> str:
-    """The METHODS name of a run made by hand, from its config.json: lab/baselines.py
-    saves its subcommand as "method"; a learner run is Ours or the ablation whose switches
-    it has (a mix of switches is named by them)."""
+    """The METHODS name of a run made by hand, from its config.json: lab/baselines.py and
+    lab/peers.py save their subcommand as "method"; a learner run is Ours or the ablation
+    whose switches it has (a mix of switches is named by them)."""
     if "method" in config:
         for name, (script, selector) in METHODS.items():
-            if script == BASELINES and selector == (config["method"],):
+            if script in (BASELINES, PEERS) and selector == (config["method"],):
                 return name
         return str(config["method"])
     config = asdict(learner_config(config))  # older runs lack newer switches
@@ -645,10 +653,15 @@ def method_of(config: dict) -> str:
 def run_settings(run_dir) -> dict:
     """A run's config.json with its METHODS name as "method", and the settings added
     since the run started filled in with the values it ran with."""
-    from lab import baselines
+    from lab import baselines, peers
 
     config = read_config(run_dir)
-    settings = baselines.saved_settings(config) if "method" in config else learner_config(config)
+    if config.get("method") in peers.METHODS:
+        settings = peers.saved_settings(config)
+    elif "method" in config:
+        settings = baselines.saved_settings(config)
+    else:
+        settings = learner_config(config)
     return {**asdict(settings), "method": method_of(config)}
 
 

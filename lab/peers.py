@@ -547,6 +547,12 @@ def parse(argv: list[str]) -> tuple[PeerConfig, str, bool]:
     return config, method, resume
 
 
+def saved_settings(saved: dict) -> PeerConfig:
+    """The settings of a peer run's config.json (its "method" names the class)."""
+    config_class = METHODS[saved["method"]].config_class
+    return harness.saved_config(config_class, saved, {})
+
+
 def main(argv: list[str] | None = None) -> int:
     return harness.cli_main(argv, parse, lambda parsed, argv: train(*parsed))
 

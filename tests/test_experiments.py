@@ -459,7 +459,7 @@ def test_a_run_made_by_hand_is_named_by_its_config():
     """load_run names a run without sweep.json from config.json: every method of METHODS
     comes back as itself, and a mix of ablation switches is named by those switches."""
     for name, (script, selector) in experiments.METHODS.items():
-        if script != experiments.BASELINES:  # offpac_il.py or lab/ablations.py
+        if script not in (experiments.BASELINES, experiments.PEERS):  # the learner's scripts
             config = experiments.selector_settings(selector)
         else:
             config = {"method": selector[0]}
