@@ -285,9 +285,11 @@ def iq_learn_loss_and_grads(
     stats = {
         "critic_loss": loss,
         "q_mean": float(q_data[0].mean()),
-        # IQ-Learn's implicit reward r = Q(s, a) - gamma V_bar(s') on each kind of row.
+        # IQ-Learn's implicit reward r = Q(s, a) - gamma V_bar(s'): at the demonstrated
+        # pairs, and at the policy's own actions on replay states (the loss never reads Q
+        # at the replay's stored actions).
         "reward_expert": float((q_data[0] - y)[expert].mean()),
-        "reward_replay": float((q_data[0] - y)[~expert].mean()),
+        "reward_policy": float(policy_residual.mean()),
     }
     return loss, grads[0], grads[1], stats
 
@@ -383,7 +385,7 @@ class ReplayBuffer(sac.ReplayBuffer):
 # ----------------------------------------------------------------------------------------
 
 UPDATE_STATS = ("alpha", "entropy", "critic_loss", "policy_loss", "q_mean")
-UPDATE_STATS += ("reward_expert", "reward_replay")  # IQ-Learn's implicit reward
+UPDATE_STATS += ("reward_expert", "reward_policy")  # IQ-Learn's implicit reward
 PROGRESS_FIELDS = (
     *("interactions", "wall_seconds", "updates", "episodes", "eval_return_mean"),
     *("eval_return_std", "normalized_score", "train_return", "eval_falls"),
