@@ -1048,3 +1048,91 @@ def test_gradient_noise_separates_the_noise_part_of_gradient_6(tmp_path, hopper_
             0 < row["noise_share"] == pytest.approx(row["noise_variance"] / row["total_variance"])
         )
         assert 0 < row["mean_step_fraction"] <= 1  # |E g| <= sqrt(E g^2)
+
+
+# ---------------------------------------------------------------------------------------
+# The policy's entropy term (--policy-entropy): nets.squashed_entropy inside gradient (6).
+# ---------------------------------------------------------------------------------------
+
+
+@given(seed=st.integers(0, 2**16), states=st.integers(1, 3), samples=st.integers(2, 5))
+def test_squashed_entropy_and_its_gradient(seed, states, samples):
+    rng = np.random.default_rng(seed)
+    u = rng.normal(scale=2.0, size=(states * samples, 2))
+    entropy, d_u = nets.squashed_entropy(u, samples)
+    # The estimate, written out: a Gaussian fit to each state's u, plus log(1 - tanh^2).
+    grouped = u.reshape(states, samples, 2)
+    expected = 0.5 * np.log(grouped.var(axis=1) + 1e-6).sum(axis=1)
+    expected += np.log(1.0 - np.tanh(grouped) ** 2).mean(axis=1).sum(axis=1)
+    np.testing.assert_allclose(entropy, expected, rtol=1e-10)
+    weights = rng.normal(size=states)  # a weighted sum tests each state's gradient apart
+
+    def f():
+        return float(weights @ nets.squashed_entropy(u, samples)[0])
+
+    analytic = d_u * np.repeat(weights, samples)[:, None]
+    # f sums O(10) terms, so its centred differences carry ~1e-9 of absolute rounding
+    # error: elements below 1e-3 are compared absolutely (gradcheck's floor).
+    assert_gradient_close(analytic, numerical_gradient(f, u), 1e-6, "dH/du", floor=1e-3)
+
+
+def test_squashed_entropy_check_catches_a_dropped_jacobian_term():
+    """The Gaussian part alone (the tanh's log-Jacobian forgotten) fails the check."""
+    rng = np.random.default_rng(1)
+    u = rng.normal(scale=2.0, size=(8, 2))
+    _, d_u = nets.squashed_entropy(u, 4)
+    wrong = d_u + 2.0 * np.tanh(u) / 4
+
+    def f():
+        return float(nets.squashed_entropy(u, 4)[0].sum())
+
+    numeric = numerical_gradient(f, u)
+    assert_gradient_close(d_u, numeric, 1e-6)
+    with pytest.raises(AssertionError, match="relative error"):
+        assert_gradient_close(wrong, numeric, 1e-6)
+
+
+@given(
+    seed=st.integers(0, 2**16),
+    states=st.integers(1, 3),
+    noise_samples=st.integers(2, 4),
+    weight=st.sampled_from([0.1, 1.0]),
+)
+def test_policy_gradient_with_the_entropy_term(seed, states, noise_samples, weight):
+    """-mean log q - w mean_s H(s), checked against finite differences through PN."""
+    learner, _, rng = small_learner(seed)
+    s = rng.standard_normal((states, 3))
+    z = rng.standard_normal((states * noise_samples, 3))
+    actions, policy_cache = learner.policy.forward(s, z)
+    assume(away_from_kinks(policy_cache, learner.critic.forward((s, actions))[1]))
+    # Near var = 0, 1/2 log(var + 1e-6) curves too sharply for steps of 1e-4 (as a kink
+    # does): keep each state's sample variance of u clear of it, and step by 1e-5.
+    spread = policy_cache.logits.reshape(states, noise_samples, -1).var(axis=1)
+    assume(spread.min() > 1e-3)
+
+    def loss():
+        return offpac_il.policy_loss_and_grads(learner, s, z, weight)[0]
+
+    plain = offpac_il.policy_loss_and_grads(learner, s, z)[0]
+    entropy, _ = nets.squashed_entropy(policy_cache.logits, noise_samples)
+    assert loss() == pytest.approx(plain - weight * entropy.mean(), rel=1e-12)
+    _, grads, stats = offpac_il.policy_loss_and_grads(learner, s, z, weight)
+    assert stats["policy_entropy"] == pytest.approx(entropy.mean(), rel=1e-12)
+    for name, param in learner.policy.net.params.items():
+        assert_gradient_close(
+            grads[name],
+            numerical_gradient(loss, param, 1e-5),
+            OBJECTIVE_TOL,
+            f"gradient (6) with the entropy term, d/d{name}",
+            floor=1e-5,  # steps of 1e-5 leave round-off of ~1e-16 * loss / 1e-5, ~5e-11
+        )
+
+
+def test_policy_entropy_needs_two_noise_samples_and_the_bounded_policy():
+    with pytest.raises(harness.UserError, match="--noise-samples of at least 2"):
+        offpac_il.check_config(offpac_il.Config(policy_entropy=0.1, noise_samples=1))
+    from lab import ablations
+
+    config = ablations.AblationConfig(policy_entropy=0.1, policy_type="gaussian")
+    with pytest.raises(harness.UserError, match="bounded policy"):
+        ablations.variant_of(config)
