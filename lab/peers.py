@@ -45,13 +45,14 @@ learner's).
 
 IQ-Learn's defaults are its authors' for MuJoCo (Div99/IQ-Learn: conf/agent/sac.yaml,
 scripts/run_mujoco.sh): two hidden layers of 256 units, critic rate 3e-4, actor rate 3e-5,
-a fixed temperature 1e-2, twin critics and their minimum, batches of 256 demonstration and
-256 replay transitions, target critics (tau 0.005), updates from 1 280 stored interactions,
-chi-squared weight 1/(4 * 0.5). Per task they choose the form of the value term and the
-temperature: `--value-loss v0` on Hopper, Walker2d and Humanoid (Humanoid also
-`--initial-alpha 1`), `value` on HalfCheetah and Ant (Ant also `--initial-alpha 1e-3`).
-Where they differ from the authors' code: the authors' Ant uses a single critic, and their
-log sigma is squashed into [-5, 2] where SAC here clips it to [-20, 2].
+a fixed temperature 1e-2, one critic (conf/env/*.yaml: SingleQCritic; `--twin-critics`
+gives SAC's two and their minimum, with which the authors report divergence), batches of
+256 demonstration and 256 replay transitions, target critics (tau 0.005), updates from
+1 280 stored interactions, chi-squared weight 1/(4 * 0.5). Per task they choose the form
+of the value term and the temperature: `--value-loss v0` on Hopper, Walker2d and Humanoid
+(Humanoid also `--initial-alpha 1`), `value` on HalfCheetah and Ant (Ant also
+`--initial-alpha 1e-3`). Where this differs from the authors' code: their log sigma is
+squashed into [-5, 2] where SAC here clips it to [-20, 2].
 
     python -m lab.peers sqil --env Ant-v4 [--demos ... --trajectories 4 --sampling sparse]
     python -m lab.peers iq-learn --env Ant-v4 --value-loss value --initial-alpha 1e-3
@@ -116,6 +117,10 @@ class PeerConfig(offpac_il.RunConfig):
     learn_alpha: bool = True
     """Learn alpha towards the target entropy -dim A (SAC's Eq. 18); off: alpha stays."""
 
+    @property
+    def twin_critics(self) -> bool:  # SQIL is SAC: always two critics
+        return True
+
 
 @dataclass
 class SQILConfig(PeerConfig):
@@ -144,6 +149,9 @@ class IQLearnConfig(PeerConfig):
     the demonstrated states of V(s)."""
     chi2_alpha: float = 0.5
     """The chi-squared regulariser's alpha: the squared residuals weigh 1/(4 alpha)."""
+    twin_critics: bool = False
+    """Two critics and their minimum, as SAC; off: one critic, as the authors' MuJoCo
+    settings (q_net SingleQCritic; with two, their critic diverges, their issue 11)."""
 
 
 # A resumed run may extend its budget (no schedule depends on it) and change what only
@@ -299,12 +307,14 @@ def iq_learn_critic_step(agent, batch, actions, log_prob, alpha, config, rng):
     a' ~ pi(.|s') (sac.critic_targets, the batch's rewards being 0), then the loss above
     at the update's own a~ ~ pi(.|s) and log pi."""
     next_noise = rng.standard_normal(actions.shape, dtype=actions.dtype)
+    twin = config.twin_critics
+    target_q2, q2 = (agent.target_q2, agent.q2) if twin else (agent.target_q1, agent.q1)
     y = sac.critic_targets(
-        agent.target_q1, agent.target_q2, agent.policy, batch, alpha, config.gamma, next_noise
+        agent.target_q1, target_q2, agent.policy, batch, alpha, config.gamma, next_noise
     )
     _, q1_grads, q2_grads, stats = iq_learn_loss_and_grads(
         agent.q1,
-        agent.q2,
+        q2,
         batch,
         actions,
         log_prob,
@@ -315,6 +325,8 @@ def iq_learn_critic_step(agent, batch, actions, log_prob, alpha, config, rng):
         config.chi2_alpha,
         config.gamma,
     )
+    if not twin:  # the loss read Q_1 in both slots: its gradient is the two slots' sum
+        return {key: q1_grads[key] + q2_grads[key] for key in q1_grads}, None, stats
     return q1_grads, q2_grads, stats
 
 

@@ -126,6 +126,10 @@ class SACConfig:
     def learn_alpha(self) -> bool:
         return True
 
+    @property
+    def twin_critics(self) -> bool:
+        return True
+
 
 def check_config(config: SACConfig) -> None:
     """Refuse settings that cannot work (NaN anywhere, a count below 1, ...), in one line."""
@@ -430,18 +434,23 @@ def update(
         _, d_log_alpha = temperature_loss_and_grad(log_alpha, log_prob, agent.target_entropy)
         d_log_alpha = {"log_alpha": np.array([d_log_alpha])}
         agent.alpha_optimizer.step(agent.log_alpha, d_log_alpha, config.lr)
-    # 3-4. Critics: SAC's Eq. (2)-(6), or the peer's objective.
+    # 3-4. Critics: SAC's Eq. (2)-(6), or the peer's objective. Without twin critics
+    # (config.twin_critics false, a peer's choice) Q_2 is never stepped nor read: the
+    # critic step returns None for it, and the policy's minimum is over Q_1 alone.
     q1_grads, q2_grads, stats = critic_step(agent, batch, actions, log_prob, alpha, config, rng)
     agent.q1_optimizer.step(agent.q1.params, q1_grads, config.lr)
-    agent.q2_optimizer.step(agent.q2.params, q2_grads, config.lr)
+    second = agent.q2 if config.twin_critics else agent.q1
+    if config.twin_critics:
+        agent.q2_optimizer.step(agent.q2.params, q2_grads, config.lr)
     # 5. Policy, Eq. (9)-(10), against the critics just updated.
     policy_loss, policy_grads = policy_loss_and_grads(
-        agent.policy, agent.q1, agent.q2, batch.observations, actions, log_prob, sample, alpha
+        agent.policy, agent.q1, second, batch.observations, actions, log_prob, sample, alpha
     )
     agent.policy_optimizer.step(agent.policy.params, policy_grads, config.policy_lr)
     # 6. Targets track the critics.
     nets.soft_update(agent.target_q1, agent.q1, config.tau)
-    nets.soft_update(agent.target_q2, agent.q2, config.tau)
+    if config.twin_critics:
+        nets.soft_update(agent.target_q2, agent.q2, config.tau)
     return {
         **stats,
         "policy_loss": policy_loss,

@@ -190,7 +190,7 @@ def test_iq_learn_critic_step_uses_the_target_critics_bootstrap():
     """y = gamma (1 - d) V_bar(s') with the batch's zero rewards: the step's gradient is the
     loss's at sac.critic_targets' y, drawn from the same noise."""
     rng = np.random.default_rng(5)
-    config = peers.IQLearnConfig(hidden=(6,), value_loss="v0")
+    config = peers.IQLearnConfig(hidden=(6,), value_loss="v0", twin_critics=True)
     agent = sac.Agent.create(DIM_S, DIM_A, config, rng, dtype=np.float64)
     batch = random_batch(rng, 6)
     batch.rewards[:] = 0.0
@@ -209,6 +209,49 @@ def test_iq_learn_critic_step_uses_the_target_critics_bootstrap():
     for got, expected in ((grads1, expected1), (grads2, expected2)):
         for key in expected:
             np.testing.assert_array_equal(got[key], expected[key])
+
+
+def test_iq_learn_with_one_critic():
+    """--no-twin-critics (the authors' MuJoCo critic): the step's gradient is that of the
+    loss with Q_1 in both slots, y bootstrapped from Q_bar_1 alone, checked against finite
+    differences and shown to catch the one slot's gradient alone; an update leaves Q_2
+    and its target untouched."""
+    rng = np.random.default_rng(3)
+    config = peers.IQLearnConfig(hidden=(6,), twin_critics=False)
+    agent = sac.Agent.create(DIM_S, DIM_A, config, rng, dtype=np.float64)
+    batch = random_batch(rng, 6)
+    batch.rewards[:] = 0.0
+    actions, log_prob = rng.uniform(-1, 1, (6, DIM_A)), rng.normal(size=6)
+    grads, second, _ = peers.iq_learn_critic_step(
+        agent, batch, actions, log_prob, 0.1, config, np.random.default_rng(9)
+    )
+    assert second is None
+    next_noise = np.random.default_rng(9).standard_normal(actions.shape)
+    y = sac.critic_targets(
+        agent.target_q1, agent.target_q1, agent.policy, batch, 0.1, config.gamma, next_noise
+    )
+    case = dict(
+        batch=batch, policy_actions=actions, policy_log_prob=log_prob, y=y, alpha=0.1,
+        n_expert=3, value_loss="value", chi2_alpha=0.5, gamma=config.gamma,
+    )  # fmt: skip
+
+    def f():
+        return peers.iq_learn_loss_and_grads(agent.q1, agent.q1, **case)[0]
+
+    assert f() == pytest.approx(iq_loss_by_definition(agent.q1, agent.q1, **case), rel=1e-10)
+    check_params(f, grads, agent.q1, "IQ-Learn, one critic")
+    _, one_slot, _, _ = peers.iq_learn_loss_and_grads(agent.q1, agent.q1, **case)
+    with pytest.raises(AssertionError, match="relative error"):
+        check_params(f, one_slot, agent.q1, "IQ-Learn, one critic")
+
+    untouched = {key: value.copy() for key, value in agent.q2.params.items()}
+    untouched_target = {key: value.copy() for key, value in agent.target_q2.params.items()}
+    q1_before = agent.q1.params["W0"].copy()
+    sac.update(agent, batch, config, rng, critic_step=peers.iq_learn_critic_step)
+    assert not np.array_equal(agent.q1.params["W0"], q1_before)
+    for key in untouched:
+        np.testing.assert_array_equal(agent.q2.params[key], untouched[key])
+        np.testing.assert_array_equal(agent.target_q2.params[key], untouched_target[key])
 
 
 # ---------------------------------------------------------------------------------------
