@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import hashlib
 import itertools
 import json
 import math
@@ -274,6 +275,7 @@ class Demos:
     source: str | None = None  # where a converted file came from, e.g. minari:<dataset id>
     terminals_assumed: bool = False  # the file had no terminal flags: all taken as False
     reference_returns: tuple[float, float] | None = None  # (ref_min_score, ref_max_score)
+    sha256: str | None = None  # of the file's bytes: a resume checks it is the same file
 
     def __len__(self) -> int:
         return len(self.observations)
@@ -346,6 +348,8 @@ def make_demos(
                     f"the {env_id} expert lasted {TRAJECTORY_STEPS} steps{floor} in only "
                     f"{len(returns)} of {max_attempts} episodes; it is not good enough for demos"
                 )
+            # A signal to a trainer making its default demonstrations: nothing is written yet.
+            harness.stop_if_requested(started=False)
             episode_seed = int(episode_rng.integers(0, 2**31 - 1))
             states, actions, episode_return, terminated = expert_episode(env, expert, episode_seed)
             if len(actions) < TRAJECTORY_STEPS or terminated or episode_return < min_return:
@@ -521,7 +525,31 @@ def load_demos(path: Path, env_id: str) -> Demos:
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: no such demonstration file")
-    return validate_demos(harness.load_arrays(path), env_id, path)
+    try:
+        sha256 = hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as error:
+        raise UserError(f"{path}: cannot read ({error.strerror})") from None
+    return dataclasses.replace(
+        validate_demos(harness.load_arrays(path), env_id, path), sha256=sha256
+    )
+
+
+DEMOS_SHA256 = "demos_sha256"  # config.json's record of the demonstrations a run started on
+
+
+def run_demos(settings, resume: bool) -> Demos:
+    """The demonstrations of a run's settings (demo_path); on a resume, refused unless
+    they are the very file the run started on (its config.json's sha256): a resume on
+    other data would silently continue another run."""
+    demos = load_demos(demo_path(settings), settings.env)
+    if resume:
+        recorded = harness.read_config(settings.run_dir).get(DEMOS_SHA256)
+        if recorded is not None and recorded != demos.sha256:
+            raise UserError(
+                f"{demos.path} is not the demonstration file {settings.run_dir} started on"
+                " (its content differs); a resume must continue on the same demonstrations"
+            )
+    return demos
 
 
 def import_minari(

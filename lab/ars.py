@@ -434,6 +434,7 @@ def train(
     exactly, with its own settings and the budget of ``config.steps``.
     """
     check_config(config)
+    harness.will_checkpoint(checkpoint_path)  # a signal's last line: is there a run to resume
     env = make_env(env_id)
     dim_s, dim_a = env_dimensions(env)
     action_low = env.action_space.low.astype(np.float64)
