@@ -542,6 +542,8 @@ def make_spaces(env, demos: expert.Demos, config: Config) -> Spaces:
     obs_dim = env.observation_space.shape[0]
     if config.standardize:
         mean, std = demos.observations.mean(axis=0), demos.observations.std(axis=0) + 1e-3
+        if not (np.isfinite(mean).all() and np.isfinite(std).all()):  # every state would be 0
+            raise harness.UserError(f"{demos.path}: the states' mean or std is not finite")
     else:
         mean, std = np.zeros(obs_dim, np.float32), np.ones(obs_dim, np.float32)
     return Spaces(

@@ -545,7 +545,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     parser.add_argument("--env", required=True, help="gymnasium id, e.g. Hopper-v4")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=harness.seed_number, default=0)
     parser.add_argument(
         "--workers",
         type=positive_int,

@@ -147,7 +147,9 @@ def parse(argv: list[str]) -> argparse.Namespace:
         "--beside-expert", action="store_true", help="the shipped expert on the right"
     )
     parser.add_argument("--out", default="policy.gif", help="the GIF to write")
-    parser.add_argument("--seed", type=int, default=0, help="reset seed of the episode")
+    parser.add_argument(
+        "--seed", type=harness.seed_number, default=0, help="reset seed of the episode"
+    )
     parser.add_argument("--steps", type=harness.positive_int, default=400, help="steps at most")
     parser.add_argument(
         "--every", type=harness.positive_int, default=4, help="a frame every N steps"

@@ -138,7 +138,9 @@ def parse(argv: list[str]):
         default=list(TABLE_TASKS),
         help="only these rows; the other rows of --out are kept (default: every row)",
     )
-    parser.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i")
+    parser.add_argument(
+        "--seed", type=harness.seed_number, default=0, help="episode i is reset with seed + i"
+    )
     parser.add_argument("--out", default=str(expert.TABLE_PATH))
     return parser.parse_args(argv)
 
