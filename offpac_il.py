@@ -717,7 +717,10 @@ def check_memory(config: Config, env) -> None:
             * config.target_samples
             * (dim_s + dim_a)
             * 2,
-            "the layers of a row chunk": 4 * 3 * chunk_rows * sum(hidden),
+            "--noise-samples or --target-samples rows of the hidden layers": 4
+            * 3
+            * chunk_rows
+            * sum(hidden),
         }
     )
 

@@ -1613,6 +1613,8 @@ def main(argv=None) -> int:
     except UserError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    except SystemExit as exit:  # --help, or a bad flag's one line (CommandLineParser)
+        return exit.code
 
 
 def run_command(argv) -> int:
@@ -1631,7 +1633,7 @@ def run_command(argv) -> int:
         " on the task of --envs (default Hopper-v4)",
     )
     run.add_argument("--runs", help="root of the run directories (default: runs/MODE...)")
-    run.add_argument("--workers", type=int, help="runs at a time in the local pool")
+    run.add_argument("--workers", type=positive_int, help="runs at a time in the local pool")
     run.add_argument("--scheduler", help="address of a Dask scheduler to run on instead")
     run.add_argument(
         "--methods",
