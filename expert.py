@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import hashlib
 import itertools
 import json
 import math
@@ -274,6 +275,7 @@ class Demos:
     source: str | None = None  # where a converted file came from, e.g. minari:<dataset id>
     terminals_assumed: bool = False  # the file had no terminal flags: all taken as False
     reference_returns: tuple[float, float] | None = None  # (ref_min_score, ref_max_score)
+    sha256: str | None = None  # of the file's bytes: a resume checks it is the same file
 
     def __len__(self) -> int:
         return len(self.observations)
@@ -346,6 +348,8 @@ def make_demos(
                     f"the {env_id} expert lasted {TRAJECTORY_STEPS} steps{floor} in only "
                     f"{len(returns)} of {max_attempts} episodes; it is not good enough for demos"
                 )
+            # A signal to a trainer making its default demonstrations: nothing is written yet.
+            harness.stop_if_requested(started=False)
             episode_seed = int(episode_rng.integers(0, 2**31 - 1))
             states, actions, episode_return, terminated = expert_episode(env, expert, episode_seed)
             if len(actions) < TRAJECTORY_STEPS or terminated or episode_return < min_return:
@@ -471,12 +475,15 @@ def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
     recorded_env = str(arrays["env_id"]) if "env_id" in arrays else None
     if recorded_env is not None and recorded_env != env_id:
         raise fail(f"demonstrations are for {recorded_env}, not {env_id}")
+    for key in DEMO_ARRAY_KEYS:  # complex parts would be dropped, strings parsed
+        if np.asarray(arrays[key]).dtype.kind not in "biuf":
+            raise fail(f"{key} are not real numbers (dtype {np.asarray(arrays[key]).dtype})")
     try:
         observations, actions, next_observations = (
             np.asarray(arrays[key], dtype=np.float32) for key in DEMO_ARRAY_KEYS
         )
         flag_keys = [key for key in (terminal_key, timeout_key) if key]
-        flags = {key: np.asarray(arrays[key]).astype(bool) for key in flag_keys}
+        flags = {key: flag_array(arrays[key], key, fail) for key in flag_keys}
         scores = [float(arrays[key]) for key in REFERENCE_KEYS if key in arrays]
     except (TypeError, ValueError) as error:
         raise fail(f"arrays are not numeric ({error})") from None
@@ -493,6 +500,11 @@ def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
             raise fail(f"{name} have shape {array.shape}; {env_id} needs (n, {dim})")
         if not np.all(np.isfinite(array)):
             raise fail(f"{name} contain non-finite values (NaN or inf)")
+        if name != "actions" and np.abs(array).max() > LARGEST_STATE_VALUE:
+            raise fail(
+                f"{name} reach {np.abs(array).max():g}; beyond {LARGEST_STATE_VALUE:.3g} their"
+                " squares overflow float32 and the standardisation is lost"
+            )
     n, columns = len(observations), {"actions": actions, "next_observations": next_observations}
     for name, array in (columns | flags).items():
         if array.shape[:1] != (n,) or (name in flags and array.ndim != 1):
@@ -504,9 +516,7 @@ def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
             f"{env_id} (largest |a| = {np.abs(actions).max():g})"
         )
 
-    recorded = (("returns", np.asarray), ("seed", int), ("sampling", str), ("trajectories", int))
-    recorded += (("source", str),)
-    optional = {key: convert(arrays[key]) for key, convert in recorded if key in arrays}
+    optional = recorded_fields(arrays, fail)
     if len(scores) == 2:
         if not (np.all(np.isfinite(scores)) and scores[0] < scores[1]):
             raise fail(f"ref_min_score {scores[0]} and ref_max_score {scores[1]} are not ordered")
@@ -516,12 +526,90 @@ def validate_demos(arrays: dict, env_id: str, path: Path) -> Demos:
     return Demos(*triplets, recorded_env, path=path, terminals_assumed=not terminal_key, **optional)
 
 
+# States are squared by the standardisation (their std); float32 overflows beyond this.
+LARGEST_STATE_VALUE = math.sqrt(np.finfo(np.float32).max)
+
+
+def flag_array(values, key: str, fail) -> np.ndarray:
+    """Terminal or timeout flags as booleans: booleans, or numbers that are 0 or 1 (a
+    string "False" would otherwise count as True, and so would NaN)."""
+    values = np.asarray(values)
+    if values.dtype.kind not in "biuf":
+        raise fail(f"{key} must be booleans or 0/1, not dtype {values.dtype}")
+    if values.dtype.kind != "b" and not np.isin(values, (0, 1)).all():
+        raise fail(f"{key} must be booleans or 0/1; they hold other values (such as NaN)")
+    return values.astype(bool)
+
+
+def recorded_fields(arrays: dict, fail) -> dict:
+    """The optional records of a demonstration file, each checked: `returns` (finite
+    numbers, one per trajectory), `seed` (a whole number in [0, 2**63 - 1]),
+    `trajectories` (a whole number of at least 1), `sampling` and `source` (strings)."""
+    optional = {}
+    for key in ("seed", "trajectories"):
+        if key in arrays:
+            value = np.asarray(arrays[key])
+            low = 1 if key == "trajectories" else 0
+            if (
+                value.shape != ()
+                or value.dtype.kind not in "iu"
+                or not low <= value <= harness.MAX_SEED
+            ):
+                raise fail(
+                    f"{key} must be one whole number of at least {low}, got {briefly(value)}"
+                )
+            optional[key] = int(value)
+    if "returns" in arrays:
+        returns = np.asarray(arrays["returns"])
+        if returns.ndim != 1 or returns.dtype.kind not in "iuf" or not np.isfinite(returns).all():
+            raise fail(
+                f"returns must be finite numbers, one per trajectory, got {briefly(returns)}"
+            )
+        optional["returns"] = returns.astype(np.float64)
+    for key in ("sampling", "source"):
+        if key in arrays:
+            value = np.asarray(arrays[key])
+            if value.shape != () or value.dtype.kind != "U":
+                raise fail(f"{key} must be one string, got {briefly(value)}")
+            optional[key] = str(value)
+    return optional
+
+
+def briefly(value: np.ndarray) -> str:
+    """A value of a file for a one-line error: itself, or an array's dtype and shape."""
+    return repr(value.item()) if value.shape == () else f"{value.dtype} array {value.shape}"
+
+
 def load_demos(path: Path, env_id: str) -> Demos:
     """Load and validate a demonstration file for ``env_id`` (see :func:`validate_demos`)."""
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: no such demonstration file")
-    return validate_demos(harness.load_arrays(path), env_id, path)
+    try:
+        sha256 = hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as error:
+        raise UserError(f"{path}: cannot read ({error.strerror})") from None
+    return dataclasses.replace(
+        validate_demos(harness.load_arrays(path), env_id, path), sha256=sha256
+    )
+
+
+DEMOS_SHA256 = "demos_sha256"  # config.json's record of the demonstrations a run started on
+
+
+def run_demos(settings, resume: bool) -> Demos:
+    """The demonstrations of a run's settings (demo_path); on a resume, refused unless
+    they are the very file the run started on (its config.json's sha256): a resume on
+    other data would silently continue another run."""
+    demos = load_demos(demo_path(settings), settings.env)
+    if resume:
+        recorded = harness.read_config(settings.run_dir).get(DEMOS_SHA256)
+        if recorded is not None and recorded != demos.sha256:
+            raise UserError(
+                f"{demos.path} is not the demonstration file {settings.run_dir} started on"
+                " (its content differs); a resume must continue on the same demonstrations"
+            )
+    return demos
 
 
 def import_minari(
@@ -680,7 +768,7 @@ def parse(argv: list[str]) -> argparse.Namespace:
     demos.add_argument("--trajectories", type=count, default=4)
     sparse_or_dense = "sparse: 100 random triplets per trajectory; dense: all 1000"
     demos.add_argument("--sampling", choices=SAMPLING_MODES, default="sparse", help=sparse_or_dense)
-    demos.add_argument("--seed", type=int, default=0)
+    demos.add_argument("--seed", type=harness.seed_number, default=0)
     demos.add_argument("--expert", help="expert file (default: experts/<env>.npz)")
     demos.add_argument("--out", help="default: demos/<env>-<sampling>-<n>traj-seed<seed>.npz")
     demos.add_argument("--force", action="store_true", help="replace an existing --out file")
@@ -693,7 +781,7 @@ def parse(argv: list[str]) -> argparse.Namespace:
     minari.add_argument("--out", required=True)
     minari.add_argument("--trajectories", type=count, help="the first N episodes (default: all)")
     minari.add_argument("--sampling", choices=SAMPLING_MODES, default="dense")
-    minari.add_argument("--seed", type=int, default=0)
+    minari.add_argument("--seed", type=harness.seed_number, default=0)
     minari.add_argument("--force", action="store_true", help="replace an existing --out file")
     minari.set_defaults(handler=cli_import_minari)
 

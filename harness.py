@@ -208,31 +208,100 @@ def config_from_command_line(argv, config_class, description, paper: dict, may_c
         parser.add_argument("--paper", action="store_true", help=explained)
     explained = "continue the run in RUN_DIR from its last checkpoint with its saved settings;"
     explained += f" only {', '.join(map(flag, may_change)) or 'no flag'} may be given anew"
-    parser.add_argument("--resume", metavar="RUN_DIR", default="", help=explained)
+    parser.add_argument("--resume", metavar="RUN_DIR", help=explained)
     args = parser.parse_args(argv)
     if getattr(args, "paper", False):
         parser.set_defaults(**paper)
         args = parser.parse_args(argv)
-    if not args.resume:
+    if args.resume is None:
         return config_from_args(config_class, args), False
+    if not args.resume:  # `--resume ""`, e.g. an unset shell variable: not a fresh run
+        raise UserError("--resume needs a run directory")
     for action in parser._actions:  # parse again, keeping only the flags given
         action.default = argparse.SUPPRESS
     given = vars(parser.parse_args(argv))
     given.pop("resume")
     if given.pop("paper", False):
         raise UserError("--paper cannot be combined with --resume (the saved settings hold)")
-    saved = {**read_config(args.resume), "run_dir": args.resume}
-    return saved_config(config_class, resumed_settings(saved, given, may_change), paper), True
+    saved = read_config(args.resume)
+    check_program(args.resume, saved, getattr(config_class, "program", None))
+    saved = {**saved, "run_dir": args.resume}
+    settings = resumed_settings(saved, given, may_change)
+    try:
+        return saved_config(config_class, settings, paper), True
+    except UserError as error:
+        raise UserError(f"{Path(args.resume) / str(error)}") from None
+
+
+# config.json's key naming the command that made the run (its config class's `program`)
+PROGRAM = "program"
+BASELINES = ("bc", "gail", "bc-gail")  # lab/baselines.py's subcommands, for older runs
+
+
+def program_of(saved: dict) -> str | None:
+    """The command that made a run, from its config.json: its "program"; for a run made
+    before that key was written, what the keys its program wrote say (None: unknown)."""
+    if PROGRAM in saved:
+        return str(saved[PROGRAM])
+    method = saved.get("method")
+    if method is not None:
+        return f"python -m lab.{'baselines' if method in BASELINES else 'peers'} {method}"
+    ablation_switches = {"on_policy": False, "reward_learning": "none", "policy_type": "bounded"}
+    if any(saved.get(name, off) != off for name, off in ablation_switches.items()):
+        return "python -m lab.ablations"
+    return "python offpac_il.py" if "termination" in saved else None
+
+
+def check_program(run_dir, saved: dict, program: str | None) -> None:
+    """Refuse to resume a run made by another command: that command's settings and
+    networks would be dropped, and its config.json rewritten without them."""
+    made_by = program_of(saved)
+    if program is not None and made_by is not None and made_by != program:
+        raise UserError(
+            f"{run_dir} is a run of `{made_by}`, not of `{program}`;"
+            f" resume it with `{made_by} --resume {run_dir}`"
+        )
 
 
 def saved_config(config_class, saved: dict, paper: dict):
     """The config of a run's config.json. A setting the file lacks did not exist when
     the run was made, so the run had the paper's behaviour there (`paper`); settings
     the code no longer has are dropped."""
-    known = {f.name for f in dataclasses.fields(config_class)}
+    fields = {f.name: f for f in dataclasses.fields(config_class)}
     values = {**paper, **saved}
     return config_class(
-        **{k: tuple(v) if isinstance(v, list) else v for k, v in values.items() if k in known}
+        **{name: saved_value(f, values[name]) for name, f in fields.items() if name in values}
+    )
+
+
+def saved_value(f: dataclasses.Field, value):
+    """A config.json value as the command line would give it for field `f` (its default's
+    type), so that a hand-edited file is refused in one line instead of crashing later."""
+    default = f.default
+    if default is None or default is dataclasses.MISSING:
+        return value
+    if isinstance(default, bool):
+        ok = isinstance(value, bool)
+    elif isinstance(default, tuple):
+        ok = isinstance(value, list | tuple) and all(whole(v) for v in value)
+        value = tuple(int(v) for v in value) if ok else value
+    elif type(default) is int:
+        ok = whole(value)
+        value = int(value) if ok else value
+    elif isinstance(default, float):
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+    else:
+        ok = isinstance(value, type(default))
+    if not ok:
+        kind = {bool: "true or false", int: "a whole number", float: "a number", str: "a string"}
+        wanted = "a list of whole numbers" if isinstance(default, tuple) else kind[type(default)]
+        raise UserError(f"{CONFIG}: {f.name} must be {wanted}, got {json.dumps(value)}")
+    return value
+
+
+def whole(value) -> bool:
+    return (
+        isinstance(value, int | float) and not isinstance(value, bool) and float(value).is_integer()
     )
 
 
@@ -240,6 +309,14 @@ def saved_config(config_class, saved: dict, paper: dict):
 
 CONFIG, PROGRESS, CHECKPOINT, LOCK = "config.json", "progress.csv", "checkpoint.npz", ".lock"
 _held_locks: dict[Path, int] = {}
+# The checkpoint files this process's runs write: run_cli's last line says whether there
+# is anything to resume.
+_checkpoint_files: set[Path] = set()
+
+
+def will_checkpoint(path) -> None:
+    """Record that this process's run keeps its checkpoint at `path` (open_run_dir does)."""
+    _checkpoint_files.add(Path(path).resolve())
 
 
 def _lock(run_dir: Path) -> None:
@@ -278,8 +355,14 @@ def open_run_dir(run_dir, resume: bool) -> Path:
     if not os.access(run_dir, os.W_OK):
         raise UserError(f"--run-dir {run_dir} is not writable")
     _lock(run_dir)
+    will_checkpoint(run_dir / CHECKPOINT)
     if resume:
-        for name in (CONFIG, PROGRESS, CHECKPOINT):
+        if not (run_dir / CHECKPOINT).is_file():
+            raise UserError(
+                f"{run_dir} cannot be resumed: its {CHECKPOINT} is missing (a run stopped"
+                " before its first checkpoint starts afresh with the same flags)"
+            )
+        for name in (CONFIG, PROGRESS):
             if not (run_dir / name).is_file():
                 raise UserError(f"{run_dir} cannot be resumed: its {name} is missing")
     elif (run_dir / CHECKPOINT).exists():
@@ -290,15 +373,35 @@ def open_run_dir(run_dir, resume: bool) -> Path:
     return run_dir
 
 
+# The config.json text of each run directory this process wrote or read: save_checkpoint
+# writes it again should the file have gone (deleted by hand mid-run), so that the run
+# stays resumable.
+_configs: dict[Path, str] = {}
+
+
 def write_config(run_dir, settings: dict) -> None:
-    write_text(Path(run_dir) / CONFIG, json.dumps(settings, indent=2) + "\n")
+    text = json.dumps(settings, indent=2) + "\n"
+    write_text(Path(run_dir) / CONFIG, text)
+    _configs[Path(run_dir).resolve()] = text
 
 
 def read_config(run_dir) -> dict:
+    """A run's settings; a missing, unreadable or hand-broken config.json is a UserError
+    that says which (the values themselves are checked by saved_config)."""
+    path = Path(run_dir) / CONFIG
     try:
-        return json.loads((Path(run_dir) / CONFIG).read_text())
-    except (OSError, ValueError):
-        raise UserError(f"{run_dir} holds no run ({CONFIG} missing or unreadable)") from None
+        text = path.read_text()
+        settings = json.loads(text)
+    except FileNotFoundError:
+        if (Path(run_dir) / CHECKPOINT).is_file():
+            raise UserError(f"{run_dir} cannot be resumed: its {CONFIG} is missing") from None
+        raise UserError(f"{run_dir} holds no run ({CONFIG} missing)") from None
+    except (OSError, ValueError) as error:
+        raise UserError(f"{path} is unreadable ({error})") from None
+    if not isinstance(settings, dict):
+        raise UserError(f"{path} does not hold settings (a JSON object)")
+    _configs.setdefault(Path(run_dir).resolve(), text)
+    return settings
 
 
 def resumed_settings(saved: dict, given: dict, may_change: tuple[str, ...]) -> dict:
@@ -323,6 +426,9 @@ def save_checkpoint(run_dir, arrays: dict[str, np.ndarray], rng, progress, field
     The checkpoint holds everything: a kill between the two writes leaves a progress.csv
     a row ahead, which the resumed run rewrites from the checkpoint's rows."""
     write_text(Path(run_dir) / PROGRESS, progress_csv(progress.rows, fields))
+    config_text = _configs.get(Path(run_dir).resolve())
+    if config_text is not None and not (Path(run_dir) / CONFIG).exists():
+        write_text(Path(run_dir) / CONFIG, config_text)
     counters = {k: v for k, v in dataclasses.asdict(progress).items() if k != "rows"}
     records = {"rng": rng.bit_generator.state, "counters": counters, "rows": progress.rows}
     records = {name: np.array(json.dumps(value)) for name, value in records.items()}
@@ -477,10 +583,39 @@ def stop_at_next_checkpoint(at_once: bool = False):
         _stop.clear()
 
 
-def stop_if_requested() -> None:
-    """After a checkpoint: end the run (KeyboardInterrupt) if a signal asked for it."""
+class StopRequested(KeyboardInterrupt):
+    """A first signal honoured at a point where stopping loses nothing: after a
+    checkpoint, or between the episodes of an evaluation or the trajectories of
+    demonstrations being made (redone in full by the next start)."""
+
+
+class StoppedBeforeStart(StopRequested):
+    """A first signal honoured before the run wrote anything (making its demonstrations)."""
+
+
+def stop_if_requested(started: bool = True) -> None:
+    """End the run (StopRequested) if a signal asked for it: after a checkpoint, and
+    between the steps of long passes that a resume redoes exactly (a signal would
+    otherwise wait for the whole pass, minutes for a long evaluation); `started` False:
+    before the run has written anything."""
     if _stop.is_set():
-        raise KeyboardInterrupt
+        raise StopRequested if started else StoppedBeforeStart
+
+
+def interrupted_line(interrupt: KeyboardInterrupt, at_once: bool) -> str:
+    """The last line of a stopped run: "continue with --resume" only where a resume can
+    continue it: every checkpoint this process's runs keep (will_checkpoint) exists."""
+    if at_once:
+        return "interrupted"
+    if isinstance(interrupt, StoppedBeforeStart) or not _checkpoint_files:
+        return "interrupted before the run started, nothing written; run the same command again"
+    unresumable = sorted(path for path in _checkpoint_files if not path.is_file())
+    if unresumable:
+        return (
+            f"interrupted before the first checkpoint ({unresumable[0]}): nothing to resume;"
+            " run the same command again to start afresh"
+        )
+    return "interrupted; continue with --resume"
 
 
 def run_cli(body: Callable[[], object], at_once: bool = False) -> int:
@@ -496,8 +631,8 @@ def run_cli(body: Callable[[], object], at_once: bool = False) -> int:
     except UserError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("interrupted" if at_once else "interrupted; continue with --resume", file=sys.stderr)
+    except KeyboardInterrupt as interrupt:
+        print(interrupted_line(interrupt, at_once), file=sys.stderr)
         return 130
     except OSError as error:
         if error.errno not in (errno.ENOSPC, errno.EDQUOT):
@@ -568,6 +703,36 @@ def cli_main(argv, parse: Callable, run: Callable, checkpoints: bool = True) -> 
         return run_cli(lambda: run(parse(argv), argv), at_once=not checkpoints)
     except SystemExit as exit:
         return exit.code
+
+
+# numpy's Generator takes seeds of any size, but files store them as int64 (expert.py's
+# demonstrations): a larger seed would be written as an object array no one can read.
+MAX_SEED = 2**63 - 1
+
+
+def seed_number(text: str) -> int:
+    """A --seed flag's value: a whole number in [0, 2**63 - 1]."""
+    value = whole_number(text)
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must lie in [0, 2**63 - 1], got {text}")
+    return value
+
+
+def memory_bytes() -> int:
+    """This machine's physical memory."""
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+def check_fits_in_memory(arrays: dict[str, float]) -> None:
+    """Refuse settings whose largest arrays (estimated bytes, named by the flags that size
+    them) cannot fit in memory, before anything is allocated or written."""
+    name, size = max(arrays.items(), key=lambda item: item[1])
+    total = sum(arrays.values())
+    if total > memory_bytes():
+        raise UserError(
+            f"these settings need about {total / 2**30:.3g} GiB of memory ({size / 2**30:.3g}"
+            f" GiB for {name}); this machine has {memory_bytes() / 2**30:.3g} GiB"
+        )
 
 
 def positive_int(text: str) -> int:

@@ -23,11 +23,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -65,10 +67,17 @@ class RunConfig:
     log_every: float = 10.0
     """Seconds between training progress lines (evaluations always print)."""
 
+    def __post_init__(self):
+        # Stored absolute: a resume from another working directory reads the same file.
+        if self.demos and not self.demos.startswith(expert.MINARI):
+            self.demos = os.path.abspath(self.demos)
+
 
 @dataclass
 class Config(RunConfig):
     """The learner's hyperparameters: Appendix B unless said otherwise."""
+
+    program: ClassVar[str] = "python offpac_il.py"  # the command that resumes its runs
 
     total_steps: int = 300_000
     """Interaction budget; the learning rates decrease linearly to 0 over it."""
@@ -533,6 +542,8 @@ def make_spaces(env, demos: expert.Demos, config: Config) -> Spaces:
     obs_dim = env.observation_space.shape[0]
     if config.standardize:
         mean, std = demos.observations.mean(axis=0), demos.observations.std(axis=0) + 1e-3
+        if not (np.isfinite(mean).all() and np.isfinite(std).all()):  # every state would be 0
+            raise harness.UserError(f"{demos.path}: the states' mean or std is not finite")
     else:
         mean, std = np.zeros(obs_dim, np.float32), np.ones(obs_dim, np.float32)
     return Spaces(
@@ -597,10 +608,10 @@ def evaluate(env, learner: Learner, spaces: Spaces, config: Config, round_index:
     many fell (ended by termination before the time limit). Evaluation has its own
     Generator, so a run evaluated more often learns the same way."""
     rng = np.random.default_rng([config.seed, 1, round_index])
-    episodes = [
-        run_episode(env, learner, spaces, rng, seed=10**6 + config.seed * 1000 + i)
-        for i in range(config.eval_episodes)
-    ]
+    episodes = []
+    for i in range(config.eval_episodes):
+        harness.stop_if_requested()  # a long evaluation must not hold a signal for minutes
+        episodes.append(run_episode(env, learner, spaces, rng, seed=10**6 + config.seed * 1000 + i))
     time_limit = env.spec.max_episode_steps if env.spec is not None else None
     falls = sum(time_limit is not None and length < time_limit for _, length in episodes)
     return np.array([episode_return for episode_return, _ in episodes]), falls
@@ -652,12 +663,13 @@ def check_config(config: Config) -> None:
     """Refuse settings that cannot work, with one clear line, before anything is written."""
     harness.check_choices(config, {"termination": TERMINATIONS, "sampling": expert.SAMPLING_MODES})
     at_least_one = ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples")
-    at_least_one += ("target_samples", "eval_every", "eval_episodes")
-    non_negative = ("seed", "demo_seed", "checkpoint_every", "log_every", "exploration_noise")
-    non_negative += ("policy_entropy",)
+    at_least_one += ("target_samples", "eval_every")
+    non_negative = ("checkpoint_every", "log_every", "exploration_noise", "policy_entropy")
     harness.check_numbers(
         config,
         {name: (1, math.inf, "[)") for name in at_least_one}
+        | {name: (0, harness.MAX_SEED, "[]") for name in ("seed", "demo_seed")}
+        | {"eval_episodes": (1, MAX_EVAL_EPISODES, "[]")}
         | {name: (0, math.inf, "[)") for name in non_negative}
         | {name: (0, math.inf, "()") for name in ("policy_lr", "critic_lr", "rmsprop_eps")}
         | {name: (0, 1, "[]") for name in ("policy_expert_states", "policy_average")}
@@ -671,12 +683,55 @@ def check_config(config: Config) -> None:
 
 
 TERMINATIONS = ("bootstrap", "absorbing", "zero")
+# 100 000 Hopper episodes are up to 10^8 steps, days of one evaluation; more is a typo.
+MAX_EVAL_EPISODES = 100_000
 
 
-def prepare(config: Config, env, rng: np.random.Generator, variant: Variant = OURS):
-    """The demonstrations (B_pi_E), the spaces, a fresh learner and an empty B_beta.
-    The networks are drawn from `rng` in a fixed order: PN, QN, then a variant's extras."""
-    demos = expert.load_demos(expert.demo_path(config), config.env)
+def check_memory(config: Config, env) -> None:
+    """Refuse sizes whose arrays cannot fit in memory, before any is made or anything
+    written: an estimate of the largest ones from the flags (float32, 4 bytes a number)."""
+    dim_s, dim_a = expert.env_dimensions(env)
+
+    def weights(sizes) -> int:
+        return sum(n_in * n_out for n_in, n_out in zip(sizes, sizes[1:], strict=False))
+
+    hidden = (*config.policy_hidden, *config.critic_hidden)
+    networks = weights([dim_s + dim_a + 1, *config.critic_hidden, 1])
+    networks += weights([2 * dim_s, *config.policy_hidden, 2 * dim_a])
+    # A row chunk holds at least one state's noise rows; each core runs one chunk.
+    chunk_rows = max(harness.CHUNK_ROWS, config.noise_samples, config.target_samples)
+    chunk_rows *= os.cpu_count() or 1
+    harness.check_fits_in_memory(
+        {
+            "--replay-size": 4 * config.replay_size * (2 * dim_s + dim_a + 2),
+            # the networks, the target critic, the averaged PN and their RMSProp states
+            "--critic-hidden and --policy-hidden": 4 * 4 * networks,
+            "--batch-size x --noise-samples": 4
+            * config.batch_size
+            * config.noise_samples
+            * (dim_s + dim_a)
+            * 2,
+            "--batch-size x --target-samples": 4
+            * 2
+            * config.batch_size
+            * config.target_samples
+            * (dim_s + dim_a)
+            * 2,
+            "--noise-samples or --target-samples rows of the hidden layers": 4
+            * 3
+            * chunk_rows
+            * sum(hidden),
+        }
+    )
+
+
+def prepare(
+    config: Config, env, rng: np.random.Generator, variant: Variant = OURS, resume: bool = False
+):
+    """The demonstrations (B_pi_E; on a resume, the run's own: expert.run_demos), the
+    spaces, a fresh learner and an empty B_beta. The networks are drawn from `rng` in a
+    fixed order: PN, QN, then a variant's extras."""
+    demos = expert.run_demos(config, resume)
     spaces = make_spaces(env, demos, config)
     expert_buffer = expert_buffer_from(demos, spaces)
     state_dim, action_dim = expert_buffer.states.shape[1], expert_buffer.actions.shape[1]
@@ -699,13 +754,17 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
     """Algorithm 1, with evaluation, logging and checkpoints around it."""
     check_config(config)
     env, eval_env = expert.make_env(config.env), expert.make_env(config.env)
+    check_memory(config, env)
     rng = np.random.default_rng(config.seed)  # the run's one Generator, passed explicitly
-    spaces, expert_buffer, learner, replay, demos = prepare(config, env, rng, variant)
+    spaces, expert_buffer, learner, replay, demos = prepare(config, env, rng, variant, resume)
     print(demos.describe(), flush=True)
     references = expert.references_or_nan(config.env, demos)
     run_dir = harness.open_run_dir(config.run_dir or f"runs/{config.env}-seed{config.seed}", resume)
     progress = load_checkpoint(run_dir, learner, replay, rng) if resume else harness.Progress()
-    harness.write_config(run_dir, dataclasses.asdict(config))  # a resume may change the budget
+    record = {harness.PROGRAM: config.program, expert.DEMOS_SHA256: demos.sha256}
+    harness.write_config(
+        run_dir, record | dataclasses.asdict(config)
+    )  # a resume may change the budget
     started = f"resumed {run_dir} at {progress.interactions} interactions" if resume else run_dir
     print(f"run directory: {started}", flush=True)
     fields = PROGRESS_FIELDS + variant.progress_fields
@@ -723,18 +782,25 @@ def train(config: Config, resume: bool = False, variant: Variant = OURS) -> harn
         harness.save_checkpoint(run_dir, learner.state() | replay.state(), rng, progress, fields)
         clock.checkpointed()
 
+    def evaluated(policy: Learner):
+        """evaluate(policy); a first signal stops it between episodes: the state before
+        it is checkpointed, and the resumed run evaluates it again, exactly (its own seeds)."""
+        try:
+            return evaluate(eval_env, policy, spaces, config, progress.eval_rounds)
+        except harness.StopRequested:
+            checkpoint()
+            raise
+
     while True:
         stats = progress.last_stats
         if progress.evaluation_due(config.eval_every, config.total_steps):
             check_finite()
-            returns, falls = evaluate(eval_env, learner, spaces, config, progress.eval_rounds)
+            returns, falls = evaluated(learner)
             diagnostics_rng = np.random.default_rng([config.seed, 2, progress.eval_rounds])
             measured = {**stats, **imitation_diagnostics(learner, expert_buffer, diagnostics_rng)}
             measured |= {"eval_falls": falls, **variant.diagnostics(learner, expert_buffer.states)}
             if learner.average_policy is not None:
-                average_returns, average_falls = evaluate(
-                    eval_env, learner.averaged(), spaces, config, progress.eval_rounds
-                )
+                average_returns, average_falls = evaluated(learner.averaged())
                 average_return = float(average_returns.mean())
                 measured |= {
                     "average_return_mean": round(average_return, 2),

@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -41,6 +42,8 @@ POLICY_TYPES = ("bounded", "gaussian", "deterministic")
 
 @dataclass
 class AblationConfig(Config):
+    program: ClassVar[str] = "python -m lab.ablations"  # offpac_il.py would drop the switches
+
     on_policy: bool = False
     """Ours+OnP: empty the replay buffer after each episode's updates (only fresh samples)."""
     reward_learning: str = "none"

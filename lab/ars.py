@@ -434,6 +434,7 @@ def train(
     exactly, with its own settings and the budget of ``config.steps``.
     """
     check_config(config)
+    harness.will_checkpoint(checkpoint_path)  # a signal's last line: is there a run to resume
     env = make_env(env_id)
     dim_s, dim_a = env_dimensions(env)
     action_low = env.action_space.low.astype(np.float64)
@@ -544,7 +545,7 @@ def build_parser() -> argparse.ArgumentParser:
         ),
     )
     parser.add_argument("--env", required=True, help="gymnasium id, e.g. Hopper-v4")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=harness.seed_number, default=0)
     parser.add_argument(
         "--workers",
         type=positive_int,

@@ -535,6 +535,7 @@ class Run:
     progress: harness.Progress = field(default_factory=harness.Progress)
     rng: np.random.Generator | None = None  # the run's one Generator, set by `start`
     clock: harness.Clock | None = None  # wall time, log and checkpoint pacing, by `start`
+    demos_sha256: str | None = None  # recorded in config.json: a resume checks its file
 
     @classmethod
     def open(cls, config: RunSettings, resume: bool) -> Run:
@@ -543,7 +544,7 @@ class Run:
         method = method_of(config)
         run_dir = Path(config.run_dir or f"runs/{method}-{config.env}-seed{config.seed}")
         env = expert.make_env(config.env)
-        demos = expert.load_demos(expert.demo_path(config), config.env)
+        demos = expert.run_demos(config, resume)
         print(demos.describe(), flush=True)
         random_return, expert_return = expert.references_or_nan(config.env, demos)
         # The learner's own state standardisation and action scaling (absorbing: never).
@@ -562,6 +563,7 @@ class Run:
             spaces.from_env_action(demos.actions),
             random_return,
             expert_return,
+            demos_sha256=demos.sha256,
         )
 
     def start(self, agent, rng: np.random.Generator, resume: bool) -> None:
@@ -573,7 +575,9 @@ class Run:
             self.progress = harness.load_checkpoint(self.run_dir, rng, agent.load_state)
             print(f"resumed {self.run_dir} at {self.progress.updates} updates", flush=True)
         else:
-            settings = {"method": method_of(self.config), **dataclasses.asdict(self.config)}
+            method = method_of(self.config)
+            settings = {"method": method, harness.PROGRAM: f"python -m lab.baselines {method}"}
+            settings |= {expert.DEMOS_SHA256: self.demos_sha256, **dataclasses.asdict(self.config)}
             harness.write_config(self.run_dir, settings)
         config = self.config
         self.clock = harness.Clock(self.progress, config.checkpoint_every, config.log_every)
@@ -924,7 +928,6 @@ def build_parser() -> argparse.ArgumentParser:
         sub.add_argument(
             "--resume",
             metavar="RUN_DIR",
-            default="",
             help="continue the run in RUN_DIR from its last checkpoint, with its "
             "saved settings (other flags are ignored)",
         )
@@ -938,27 +941,27 @@ SETTINGS_BEFORE_THEY_EXISTED = {GAILConfig: {"target_kl": 0.0}}
 def saved_settings(saved: dict) -> RunSettings:
     """The settings of a run's config.json (its "method" names the class); a setting the
     file lacks keeps the behaviour the run started with (SETTINGS_BEFORE_THEY_EXISTED)."""
-    values = {**saved}
-    cls = METHODS[values.pop("method")][0]
-    values = {**SETTINGS_BEFORE_THEY_EXISTED.get(cls, {}), **values}
-    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in values.items()})
+    cls = METHODS[saved["method"]][0]
+    return harness.saved_config(cls, saved, SETTINGS_BEFORE_THEY_EXISTED.get(cls, {}))
 
 
 def config_from(args: argparse.Namespace) -> RunSettings:
     """The method's settings: from the flags, or from RUN_DIR/config.json with --resume."""
     cls = METHODS[args.method][0]
-    if args.resume:
+    if args.resume is not None:
+        if not args.resume:  # `--resume ""`, e.g. an unset shell variable: not a fresh run
+            raise UserError("--resume needs a run directory")
         run_dir = Path(args.resume)
         saved = harness.read_config(run_dir)
         if not (run_dir / harness.CHECKPOINT).exists():
             raise UserError(f"{run_dir} holds no checkpoint to resume from")
-        method = saved.get("method")
-        if method != args.method:
-            raise UserError(
-                f"{run_dir} is a {method} run; resume it with "
-                f"`python -m lab.baselines {method} --resume {run_dir}`"
-            )
-        return saved_settings({**saved, "run_dir": str(run_dir)})
+        harness.check_program(run_dir, saved, f"python -m lab.baselines {args.method}")
+        if saved.get("method") not in METHODS:  # a run of an unknown program
+            raise UserError(f"{run_dir} is not a run of `python -m lab.baselines`")
+        try:
+            return saved_settings({**saved, "run_dir": str(run_dir)})
+        except UserError as error:
+            raise UserError(f"{run_dir / str(error)}") from None
     config = harness.config_from_args(cls, args)
     if args.method == "bc-gail" and not config.bc_init:
         raise UserError("bc-gail needs --bc-init BC_RUN_DIR (a finished `lab.baselines bc` run)")
@@ -970,7 +973,7 @@ def config_from(args: argparse.Namespace) -> RunSettings:
 def run(args: argparse.Namespace, argv: list[str]) -> None:
     config = config_from(args)
     train = train_bc if isinstance(config, BCConfig) else train_gail
-    train(config, resume=bool(args.resume))
+    train(config, resume=args.resume is not None)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1613,6 +1613,8 @@ def main(argv=None) -> int:
     except UserError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    except SystemExit as exit:  # --help, or a bad flag's one line (CommandLineParser)
+        return exit.code
 
 
 def run_command(argv) -> int:
@@ -1631,7 +1633,7 @@ def run_command(argv) -> int:
         " on the task of --envs (default Hopper-v4)",
     )
     run.add_argument("--runs", help="root of the run directories (default: runs/MODE...)")
-    run.add_argument("--workers", type=int, help="runs at a time in the local pool")
+    run.add_argument("--workers", type=positive_int, help="runs at a time in the local pool")
     run.add_argument("--scheduler", help="address of a Dask scheduler to run on instead")
     run.add_argument(
         "--methods",
@@ -1673,7 +1675,9 @@ def run_command(argv) -> int:
     probe.add_argument("run_dir")
     probe.add_argument("--episodes", type=positive_int, default=3)
     probe.add_argument("--steps", type=positive_int, default=300, help="steps per episode")
-    probe.add_argument("--seed", type=int, default=2_000_000, help="reset seed of the first")
+    probe.add_argument(
+        "--seed", type=harness.seed_number, default=2_000_000, help="reset seed of the first"
+    )
     evaluation = sub.add_parser(
         "evaluate", help="a run's saved policy over many episodes: returns and falls, a table"
     )
@@ -1685,7 +1689,9 @@ def run_command(argv) -> int:
         "(each in turn)",
     )
     evaluation.add_argument("--episodes", type=positive_int, default=20)
-    evaluation.add_argument("--seed", type=int, default=3_000_000, help="reset seed of the first")
+    evaluation.add_argument(
+        "--seed", type=harness.seed_number, default=3_000_000, help="reset seed of the first"
+    )
     along = sub.add_parser(
         "along-expert",
         help="a run's saved policy's action error along the expert's own episodes, by time step",
@@ -1693,7 +1699,9 @@ def run_command(argv) -> int:
     along.add_argument("run_dir")
     along.add_argument("--policy", default="average", help="as for evaluate")
     along.add_argument("--episodes", type=positive_int, default=5)
-    along.add_argument("--seed", type=int, default=3_000_000, help="reset seed of the first")
+    along.add_argument(
+        "--seed", type=harness.seed_number, default=3_000_000, help="reset seed of the first"
+    )
     averaging = sub.add_parser(
         "average-snapshots",
         help="what other --policy-average horizons would have scored, from the snapshots",
@@ -1707,14 +1715,16 @@ def run_command(argv) -> int:
         metavar="INTERACTIONS",
     )
     averaging.add_argument("--episodes", type=positive_int, default=5)
-    averaging.add_argument("--seed", type=int, default=3_000_000, help="reset seed of the first")
+    averaging.add_argument(
+        "--seed", type=harness.seed_number, default=3_000_000, help="reset seed of the first"
+    )
     noise = sub.add_parser(
         "gradient-noise", help="the noise z's share of gradient (6)'s variance, a table"
     )
     noise.add_argument("run_dir")
     noise.add_argument("--samples", type=positive_int, nargs="+", default=[8, 128], metavar="Z")
     noise.add_argument("--draws", type=positive_int, default=30, help="gradients per estimate")
-    noise.add_argument("--seed", type=int, default=0)
+    noise.add_argument("--seed", type=harness.seed_number, default=0)
     args = parser.parse_args(argv)
 
     if args.command == "probe":

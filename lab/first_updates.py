@@ -149,7 +149,7 @@ def main(argv=None) -> int:
     )
     count = harness.positive_int
     parser.add_argument("--env", default="Ant-v4")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=harness.seed_number, default=0)
     parser.add_argument("--trajectories", type=count, default=4)
     parser.add_argument("--interactions", type=count, default=3000)
     parser.add_argument("--every", type=count, default=1000)

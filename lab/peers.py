@@ -432,7 +432,7 @@ def train(config: PeerConfig, method: str, resume: bool = False) -> sac.Progress
     checkpoints as the learner's."""
     check_config(config)
     env, eval_env = expert.make_env(config.env), expert.make_env(config.env)
-    demos = expert.load_demos(expert.demo_path(config), config.env)
+    demos = expert.run_demos(config, resume)
     print(demos.describe(), flush=True)
     spaces = offpac_il.make_spaces(env, demos, offpac_il.Config(standardize=config.standardize))
     expert_buffer = offpac_il.expert_buffer_from(demos, spaces)
@@ -453,7 +453,9 @@ def train(config: PeerConfig, method: str, resume: bool = False) -> sac.Progress
         progress = sac.Progress()
         harness.write_text(run_dir / harness.PROGRESS, harness.progress_csv([], PROGRESS_FIELDS))
     # Rewritten on a resume too: it may have extended the budget.
-    harness.write_config(run_dir, {"method": method, **dataclasses.asdict(config)})
+    record = {"method": method, harness.PROGRAM: f"python -m lab.peers {method}"}
+    record |= {expert.DEMOS_SHA256: demos.sha256}
+    harness.write_config(run_dir, record | dataclasses.asdict(config))
     clock = harness.Clock(progress, config.checkpoint_every, config.log_every)
     acting = Acting(SquashedGaussian(agent.policy, dim_a))
     deterministic = Acting(SquashedGaussian(agent.policy, dim_a, deterministic=True))
@@ -555,7 +557,9 @@ def parse(argv: list[str]) -> tuple[PeerConfig, str, bool]:
         argv, METHODS[method].config_class, METHODS[method].summary, {}, RESUMABLE_CHANGES
     )
     if resume:
-        made_by = harness.read_config(config.run_dir).get("method")
+        saved = harness.read_config(config.run_dir)
+        harness.check_program(config.run_dir, saved, f"python -m lab.peers {method}")
+        made_by = saved.get("method")
         if made_by != method:
             raise UserError(f"{config.run_dir} is not a {method} run (its method: {made_by})")
     return config, method, resume

@@ -14,6 +14,7 @@ Generator seeded by it, so a command draws the same GIF every time.
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import sys
 from pathlib import Path
@@ -35,7 +36,10 @@ def render_env(env_id: str, width: int, height: int, **kwargs):
     system package it needs."""
     import expert
 
-    env = None
+    env, message = None, None
+    # A gymnasium viewer whose __init__ failed frees, in its __del__, a GL context it never
+    # made: six lines of "Exception ignored" when the failure's traceback is dropped.
+    hook, sys.unraisablehook = sys.unraisablehook, lambda unraisable: None
     try:
         import mujoco  # it loads the GL back end MUJOCO_GL names
 
@@ -51,12 +55,15 @@ def render_env(env_id: str, width: int, height: int, **kwargs):
     except UserError:
         raise
     except Exception as error:  # the GL back ends fail with several unrelated types
-        if env is not None:
-            env.close()
         gl = os.environ.get("MUJOCO_GL")
-        raise UserError(
-            f"MuJoCo cannot render offscreen (MUJOCO_GL={gl}: {error}); {RENDER_PACKAGES}"
-        ) from None
+        message = f"MuJoCo cannot render offscreen (MUJOCO_GL={gl}: {error}); {RENDER_PACKAGES}"
+    finally:
+        if message is not None and env is not None:
+            env.close()
+        gc.collect()
+        sys.unraisablehook = hook
+    if message is not None:
+        raise UserError(message)
     return env
 
 
@@ -147,7 +154,9 @@ def parse(argv: list[str]) -> argparse.Namespace:
         "--beside-expert", action="store_true", help="the shipped expert on the right"
     )
     parser.add_argument("--out", default="policy.gif", help="the GIF to write")
-    parser.add_argument("--seed", type=int, default=0, help="reset seed of the episode")
+    parser.add_argument(
+        "--seed", type=harness.seed_number, default=0, help="reset seed of the episode"
+    )
     parser.add_argument("--steps", type=harness.positive_int, default=400, help="steps at most")
     parser.add_argument(
         "--every", type=harness.positive_int, default=4, help="a frame every N steps"

@@ -138,13 +138,19 @@ def parse(argv: list[str]):
         default=list(TABLE_TASKS),
         help="only these rows; the other rows of --out are kept (default: every row)",
     )
-    parser.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i")
+    parser.add_argument(
+        "--seed", type=harness.seed_number, default=0, help="episode i is reset with seed + i"
+    )
     parser.add_argument("--out", default=str(expert.TABLE_PATH))
     return parser.parse_args(argv)
 
 
 def run(args, argv) -> None:
     out = Path(args.out)
+    if out.is_dir():  # refused now, not after hours of measuring
+        raise harness.UserError(f"--out {out} is a directory; give a file name")
+    if any(parent.exists() and not parent.is_dir() for parent in out.parents):
+        raise harness.UserError(f"--out {out} lies under a file")
     for env_id in args.tasks:  # a wrong task stops here, before hours of measuring
         expert.make_env(env_id).close()
     kept = {}
@@ -153,6 +159,8 @@ def run(args, argv) -> None:
             kept = json.loads(out.read_text())
         except (OSError, ValueError) as error:
             raise harness.UserError(f"{out}: not a valid table ({error})") from None
+        if not isinstance(kept, dict):
+            raise harness.UserError(f"{out}: not a valid table (a JSON object of rows)")
     measured = measure_table(
         args.episodes, args.seed, args.tasks, log=lambda line: print(line, flush=True)
     )

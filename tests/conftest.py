@@ -59,3 +59,4 @@ def release_run_dir_locks():
 
     for run_dir in list(harness._held_locks):
         release(run_dir)
+    harness._checkpoint_files.clear()

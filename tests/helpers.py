@@ -16,6 +16,7 @@ def release(run_dir) -> None:
     the tests train many runs in one process)."""
     import harness
 
+    harness._checkpoint_files.discard((Path(run_dir) / harness.CHECKPOINT).resolve())
     fd = harness._held_locks.pop(Path(run_dir).resolve(), None)
     if fd is not None:
         os.close(fd)

@@ -632,7 +632,7 @@ def raises(error: BaseException):
     "error, status, line",
     [
         (UserError("--tau must lie in (0, 1]"), 2, "error: --tau must lie in (0, 1]"),
-        (KeyboardInterrupt(), 130, "interrupted; continue with --resume"),
+        (KeyboardInterrupt(), 130, "interrupted before the run started, nothing written"),
         (
             OSError(errno.ENOSPC, "No space left on device", "/r/checkpoint.npz"),
             2,
