@@ -1754,12 +1754,22 @@ def run_command(argv) -> int:
         print_rows(gradient_noise(args.run_dir, args.samples, args.draws, args.seed))
         return 0
     if args.command == "hold":
+        if args.since < 0 or args.until < args.since:
+            raise UserError(
+                f"hold: --since {args.since:g} and --until {args.until:g} must satisfy"
+                " 0 <= since <= until"
+            )
         print(
             hold_table(args.run_dirs, args.reach, args.floor, args.since, args.until, args.averaged)
         )
         return 0
 
     if args.command == "curves":
+        out = Path(args.out)
+        if out.is_dir():
+            raise UserError(f"curves: {out} is a directory; give the .png file to write")
+        if out.suffix.lower() not in ("", ".png"):
+            raise UserError(f"curves: {out} must be a .png file")
         groups = group_runs(args.run_dirs, args.label_by)
         plot_curves(groups, args.out, args.x, args.y, args.title, args.x_max)
         return 0
@@ -1781,7 +1791,13 @@ def run_command(argv) -> int:
             raise UserError("sweep ablations runs on one task: give --envs at most one")
         chosen = select(ablation_plan(runs_root, *args.envs), args.methods)
     else:
-        chosen = select(plan(args.mode == "quick", runs_root), args.methods, args.envs)
+        full_plan = plan(args.mode == "quick", runs_root)
+        chosen = select(full_plan, args.methods, args.envs)
+        if not chosen:  # a typo in --envs must not run nothing, silently
+            tasks = sorted({spec.labels.get("env") for spec in full_plan} - {None})
+            raise UserError(
+                f"--envs {' '.join(args.envs)}: the plan's tasks are {', '.join(tasks)}"
+            )
     specs, skipped = split_runnable(chosen)
     for method, reason in skipped.items():
         print(f"skipping {method}: {reason}")

@@ -123,3 +123,25 @@ def test_lab_table_checks_out_before_measuring(tmp_path, capsys, monkeypatch):
     one_line(capsys, "not a valid table")
     assert table.main(["--tasks", "Hopper-v4", "--out", str(tmp_path)]) == 2
     one_line(capsys, "is a directory")
+
+
+def test_lab_experiments_checks_its_arguments_first(tmp_path, capsys):
+    """curves to a non-PNG file or onto a directory, hold with --until below --since, and a
+    sweep whose --envs match no run of the plan: one line, status 2, nothing written."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "progress.csv").write_text("interactions,normalized_score\n5000,0.5\n")
+    folder = tmp_path / "folder"
+    folder.mkdir()
+    cases = [
+        (["curves", str(tmp_path / "out.txt"), str(run)], "must be a .png file"),
+        (["curves", str(folder), str(run)], "is a directory"),
+        (["hold", str(run), "--until", "-10"], "0 <= since <= until"),
+        (["sweep", "quick", "--envs", "NotAnEnv-v0", "--runs", str(tmp_path / "sweep")],
+         "the plan's tasks are"),
+    ]  # fmt: skip
+    for argv, fragment in cases:
+        assert experiments.main(argv) == 2, argv
+        one_line(capsys, fragment)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["folder", "run"]
+    assert not any(folder.iterdir())
