@@ -634,6 +634,14 @@ def run_cli(body: Callable[[], object], at_once: bool = False) -> int:
     except KeyboardInterrupt as interrupt:
         print(interrupted_line(interrupt, at_once), file=sys.stderr)
         return 130
+    except ImportError as error:  # a signal's interrupt inside a module's first import
+        interrupt = error
+        while interrupt is not None and not isinstance(interrupt, KeyboardInterrupt):
+            interrupt = interrupt.__cause__ or interrupt.__context__
+        if interrupt is None:
+            raise
+        print(interrupted_line(interrupt, at_once), file=sys.stderr)
+        return 130
     except OSError as error:
         if error.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise

@@ -736,7 +736,7 @@ def test_map_row_chunks_covers_every_state_once_in_order(n_states, rows_per_stat
         (["--policy-hidden", "0", "16"], "--policy-hidden needs layer sizes of at least 1"),
         (["--critic-hidden", "-4"], "--critic-hidden needs layer sizes of at least 1"),
         (["--seed", "-1"], "--seed must lie in [0, 9.22337e+18]"),
-        (["--eval-episodes", "0"], "--eval-episodes must lie in [1, inf)"),
+        (["--eval-episodes", "0"], "--eval-episodes must lie in [1, 100000]"),
     ],
 )
 def test_a_setting_that_cannot_work_is_refused_before_anything_is_written(
