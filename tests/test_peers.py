@@ -186,18 +186,26 @@ def test_iq_learn_gradient_check_catches_wrong_gradients():
             check_both(*wrong)
 
 
-def test_iq_learn_critic_step_uses_the_target_critics_bootstrap():
-    """y = gamma (1 - d) V_bar(s') with the batch's zero rewards: the step's gradient is the
-    loss's at sac.critic_targets' y, drawn from the same noise."""
-    rng = np.random.default_rng(5)
-    config = peers.IQLearnConfig(hidden=(6,), value_loss="v0", twin_critics=True)
+def iq_critic_step_case(seed: int, **settings):
+    """An IQ-Learn agent, a 6-row batch with zero rewards, a~ and log pi, and the critic
+    step's output at alpha 0.1 with next-action noise from Generator 9."""
+    rng = np.random.default_rng(seed)
+    config = peers.IQLearnConfig(hidden=(6,), **settings)
     agent = sac.Agent.create(DIM_S, DIM_A, config, rng, dtype=np.float64)
     batch = random_batch(rng, 6)
     batch.rewards[:] = 0.0
     actions, log_prob = rng.uniform(-1, 1, (6, DIM_A)), rng.normal(size=6)
-    grads1, grads2, _ = peers.iq_learn_critic_step(
+    step = peers.iq_learn_critic_step(
         agent, batch, actions, log_prob, 0.1, config, np.random.default_rng(9)
     )
+    return rng, config, agent, batch, actions, log_prob, step
+
+
+def test_iq_learn_critic_step_uses_the_target_critics_bootstrap():
+    """y = gamma (1 - d) V_bar(s') with the batch's zero rewards: the step's gradient is the
+    loss's at sac.critic_targets' y, drawn from the same noise."""
+    case = iq_critic_step_case(5, value_loss="v0", twin_critics=True)
+    rng, config, agent, batch, actions, log_prob, (grads1, grads2, _) = case
     next_noise = np.random.default_rng(9).standard_normal(actions.shape)
     y = sac.critic_targets(
         agent.target_q1, agent.target_q2, agent.policy, batch, 0.1, config.gamma, next_noise
@@ -216,15 +224,8 @@ def test_iq_learn_with_one_critic():
     loss with Q_1 in both slots, y bootstrapped from Q_bar_1 alone, checked against finite
     differences and shown to catch the one slot's gradient alone; an update leaves Q_2
     and its target untouched."""
-    rng = np.random.default_rng(3)
-    config = peers.IQLearnConfig(hidden=(6,), twin_critics=False)
-    agent = sac.Agent.create(DIM_S, DIM_A, config, rng, dtype=np.float64)
-    batch = random_batch(rng, 6)
-    batch.rewards[:] = 0.0
-    actions, log_prob = rng.uniform(-1, 1, (6, DIM_A)), rng.normal(size=6)
-    grads, second, _ = peers.iq_learn_critic_step(
-        agent, batch, actions, log_prob, 0.1, config, np.random.default_rng(9)
-    )
+    case = iq_critic_step_case(3, twin_critics=False)
+    rng, config, agent, batch, actions, log_prob, (grads, second, _) = case
     assert second is None
     next_noise = np.random.default_rng(9).standard_normal(actions.shape)
     y = sac.critic_targets(
