@@ -193,11 +193,14 @@ class CommandLineParser(argparse.ArgumentParser):
         sys.exit(2)
 
 
-def config_from_command_line(argv, config_class, description, paper: dict, may_change):
+def config_from_command_line(
+    argv, config_class, description, paper: dict, may_change, before_they_existed=None
+):
     """(config, resume) from a trainer's command line: one flag per `config_class` field,
     `--paper` (the `paper` values become the defaults; flags given still win) and
     `--resume RUN_DIR` (the saved settings, with only the flags in `may_change` given
-    anew; any other flag given must agree with the saved run)."""
+    anew; any other flag given must agree with the saved run). A setting the saved file
+    lacks takes its value in `before_they_existed`, else the paper's (see saved_config)."""
     parser = CommandLineParser(
         description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
@@ -228,7 +231,7 @@ def config_from_command_line(argv, config_class, description, paper: dict, may_c
     saved = {**saved, "run_dir": args.resume}
     settings = resumed_settings(saved, given, may_change)
     try:
-        return saved_config(config_class, settings, paper), True
+        return saved_config(config_class, settings, {**paper, **(before_they_existed or {})}), True
     except UserError as error:
         raise UserError(f"{Path(args.resume) / str(error)}") from None
 
@@ -249,6 +252,8 @@ def program_of(saved: dict) -> str | None:
     ablation_switches = {"on_policy": False, "reward_learning": "none", "policy_type": "bounded"}
     if any(saved.get(name, off) != off for name, off in ablation_switches.items()):
         return "python -m lab.ablations"
+    if {"steps", "out"} <= saved.keys():  # lab/sac.py's budget and expert file
+        return "python -m lab.sac"
     return "python offpac_il.py" if "termination" in saved else None
 
 

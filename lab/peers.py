@@ -154,6 +154,10 @@ class IQLearnConfig(PeerConfig):
     settings (q_net SingleQCritic; with two, their critic diverges, their issue 11)."""
 
 
+# What a run made before a setting existed had there, where that differs from today's
+# default: IQ-Learn ran SAC's twin critics until the one critic became its default.
+SETTINGS_BEFORE_THEY_EXISTED = {IQLearnConfig: {"twin_critics": True}}
+
 # A resumed run may extend its budget (no schedule depends on it) and change what only
 # logging and checkpoints read.
 RESUMABLE_CHANGES = ("total_steps", "checkpoint_every", "log_every")
@@ -553,8 +557,14 @@ def parse(argv: list[str]) -> tuple[PeerConfig, str, bool]:
     method, argv = argv[0], argv[1:]
     if method not in METHODS:
         raise UserError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    config_class = METHODS[method].config_class
     config, resume = harness.config_from_command_line(
-        argv, METHODS[method].config_class, METHODS[method].summary, {}, RESUMABLE_CHANGES
+        argv,
+        config_class,
+        METHODS[method].summary,
+        {},
+        RESUMABLE_CHANGES,
+        before_they_existed=SETTINGS_BEFORE_THEY_EXISTED.get(config_class, {}),
     )
     if resume:
         saved = harness.read_config(config.run_dir)
@@ -566,9 +576,12 @@ def parse(argv: list[str]) -> tuple[PeerConfig, str, bool]:
 
 
 def saved_settings(saved: dict) -> PeerConfig:
-    """The settings of a peer run's config.json (its "method" names the class)."""
+    """The settings of a peer run's config.json (its "method" names the class); a setting
+    the file lacks keeps the behaviour the run started with (SETTINGS_BEFORE_THEY_EXISTED)."""
     config_class = METHODS[saved["method"]].config_class
-    return harness.saved_config(config_class, saved, {})
+    return harness.saved_config(
+        config_class, saved, SETTINGS_BEFORE_THEY_EXISTED.get(config_class, {})
+    )
 
 
 def main(argv: list[str] | None = None) -> int:

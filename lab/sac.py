@@ -61,6 +61,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -80,6 +81,8 @@ TRAINER = "SAC (Haarnoja et al. 2018, arXiv:1812.05905), lab/sac.py"  # in the e
 @dataclass
 class SACConfig:
     """SAC settings; the defaults are the SB3 / rl-zoo / CleanRL settings for MuJoCo."""
+
+    program: ClassVar[str] = "python -m lab.sac"  # the command that resumes its runs
 
     env: str = ""
     """Gymnasium environment id, e.g. Walker2d-v4 (required)."""
@@ -668,7 +671,9 @@ def train(config: SACConfig, resume: bool = False, command: str = "", log=shippi
         log(f"resumed {run_dir} at {progress.interactions} env steps")
     else:
         progress = Progress(best_eval_return=shipping.bar_to_beat(config.env, expert_path, log))
-        harness.write_config(run_dir, dataclasses.asdict(config))
+        harness.write_config(
+            run_dir, {harness.PROGRAM: config.program, **dataclasses.asdict(config)}
+        )
         # A resume needs progress.csv: a kill right after the first checkpoint finds one.
         harness.write_text(run_dir / harness.PROGRESS, harness.progress_csv([], PROGRESS_FIELDS))
     progress.commands.append(command)

@@ -10,6 +10,7 @@ plausible mistakes.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -324,6 +325,27 @@ def test_command_line_help_resume_and_refusals(tmp_path, hopper_demos):
     harness.write_config(run_dir, {**saved, "method": "iq-learn"})
     result = run_module("lab.peers", "sqil", "--resume", run_dir, check=False)
     assert_one_line_error(result, "not a sqil run")
+
+
+def test_an_iq_learn_run_saved_before_twin_critics_existed_keeps_its_two_critics(
+    tmp_path, hopper_demos
+):
+    """IQ-Learn ran SAC's two critics until one became its default; a config.json of that
+    time lacks `twin_critics`, and its resume and its reading must not turn it into a
+    one-critic run."""
+    run_dir = tmp_path / "old"
+    config = tiny_config(run_dir, hopper_demos, method="iq-learn")
+    assert config.twin_critics is False  # today's default
+    saved = {"method": "iq-learn", **dataclasses.asdict(config)}
+    del saved["twin_critics"]
+    run_dir.mkdir()
+    harness.write_config(run_dir, saved)
+    assert peers.saved_settings(saved).twin_critics is True
+    resumed, method, resume = peers.parse(["iq-learn", "--resume", str(run_dir)])
+    assert (method, resume, resumed.twin_critics) == ("iq-learn", True, True)
+    # A run that records the setting keeps what it recorded.
+    harness.write_config(run_dir, {**saved, "twin_critics": False})
+    assert peers.parse(["iq-learn", "--resume", str(run_dir)])[0].twin_critics is False
 
 
 def test_kill_and_resume_from_the_command_line(tmp_path, hopper_demos):

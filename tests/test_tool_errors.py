@@ -3,6 +3,7 @@ written (issue 46, items 10-16)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -14,7 +15,7 @@ from test_offpac_il import no_run_files
 
 import harness
 import offpac_il
-from lab import baselines, experiments, table
+from lab import baselines, experiments, sac, table
 
 
 def one_line(capsys, *fragments: str) -> str:
@@ -97,6 +98,20 @@ def test_lab_baselines_names_the_program_of_a_learner_run(tmp_path, capsys):
     harness.save_arrays(run_dir / harness.CHECKPOINT, {})
     assert baselines.main(["gail", "--resume", str(run_dir)]) == 2
     one_line(capsys, f"resume it with `python offpac_il.py --resume {run_dir}`")
+
+
+def test_sac_and_learner_runs_are_each_resumed_by_their_own_program(tmp_path, capsys):
+    """A SAC expert run, with or without the "program" key of newer runs, is refused by
+    the learner, and a learner run by lab.sac, each naming the command that resumes it."""
+    sac_run, learner_run = tmp_path / "sac", tmp_path / "learner"
+    saved = {**dataclasses.asdict(sac.SACConfig(env="Hopper-v4")), "run_dir": str(sac_run)}
+    for config in ({harness.PROGRAM: sac.SACConfig.program, **saved}, saved):
+        harness.write_config(sac_run, config)
+        assert offpac_il.main(["--resume", str(sac_run)]) == 2
+        one_line(capsys, f"resume it with `python -m lab.sac --resume {sac_run}`")
+    harness.write_config(learner_run, {harness.PROGRAM: offpac_il.Config.program})
+    assert sac.main(["--resume", str(learner_run)]) == 2
+    one_line(capsys, f"resume it with `python offpac_il.py --resume {learner_run}`")
 
 
 def test_lab_render_without_a_gl_back_end_is_one_line(tmp_path):
