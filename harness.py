@@ -228,6 +228,7 @@ def config_from_command_line(
         raise UserError("--paper cannot be combined with --resume (the saved settings hold)")
     saved = read_config(args.resume)
     check_program(args.resume, saved, getattr(config_class, "program", None))
+    check_removed_settings(args.resume, saved, getattr(config_class, "removed_settings", {}))
     saved = {**saved, "run_dir": args.resume}
     settings = resumed_settings(saved, given, may_change)
     try:
@@ -266,6 +267,18 @@ def check_program(run_dir, saved: dict, program: str | None) -> None:
             f"{run_dir} is a run of `{made_by}`, not of `{program}`;"
             f" resume it with `{made_by} --resume {run_dir}`"
         )
+
+
+def check_removed_settings(run_dir, saved: dict, removed: dict) -> None:
+    """Refuse to resume a run that used a setting the code no longer has: dropping it would
+    silently change the run. `removed`: name -> (its "off" value, the last commit with it)."""
+    for name, (off, commit) in removed.items():
+        if name in saved and saved[name] != off:
+            where = f"; resume it with the code of commit {commit}" if commit else ""
+            raise UserError(
+                f"{run_dir} was made with {flag(name)} {saved[name]}, a setting this code"
+                f" no longer has{where}"
+            )
 
 
 def saved_config(config_class, saved: dict, paper: dict):

@@ -151,34 +151,6 @@ def js_divergence_grad(x: np.ndarray, t: np.ndarray) -> np.ndarray:
     return 0.5 * p_times_1mp * (x - (log_m - log_1mm))
 
 
-def squashed_entropy(u: np.ndarray, samples: int, var_floor: float = 1e-6):
-    """A sample estimate of the entropy of a = tanh(u) at each state, and its gradient in u.
-
-    u: (S * K, dim A), PN's outputs before tanh for K = `samples` noise vectors z per
-    state, a state's K rows consecutive. The implicit policy a = tanh(PN(s, z)) has no
-    density, so its entropy is estimated as that of a Gaussian fitted to its K pre-tanh
-    samples plus the change of variables through tanh (SAC's App. C, which keeps SAC's
-    policy off the corners):
-        H(s) = sum_d [ 1/2 log(var_d + floor) + 1/K sum_k log(1 - a_kd^2) ] + const,
-    var_d the K samples' (population) variance of u_d. Per state, with u_bar_d their mean:
-        d/du_kd 1/2 log(var_d + floor) = (u_kd - u_bar_d) / (K (var_d + floor))
-    (the derivative through u_bar_d sums to zero over k), and
-        d/du_kd 1/K log(1 - tanh(u_kd)^2) = -2 a_kd / K.
-    log(1 - a^2) is computed as 2 (log 2 - |u| - softplus(-2|u|)), finite for every u.
-    Returns (H per state (S,), dH(s)/du (S * K, dim A)).
-    """
-    n_states = len(u) // samples
-    grouped = u.reshape(n_states, samples, -1)  # (S, K, dim A)
-    centred = grouped - grouped.mean(axis=1, keepdims=True)
-    var = (centred * centred).mean(axis=1, keepdims=True) + var_floor  # (S, 1, dim A)
-    log_2 = float(np.log(2.0))
-    magnitude = np.abs(grouped)
-    log_jacobian = 2.0 * (log_2 - magnitude - softplus(-2.0 * magnitude))  # log(1 - a^2)
-    entropy = 0.5 * np.log(var[:, 0]).sum(axis=1) + log_jacobian.mean(axis=1).sum(axis=1)
-    d_u = (centred / var - 2.0 * np.tanh(grouped)) / samples  # (S, K, dim A)
-    return entropy, d_u.reshape(u.shape)
-
-
 # === The multilayer perceptron ===
 
 

@@ -78,6 +78,16 @@ class Config(RunConfig):
     """The learner's hyperparameters: Appendix B unless said otherwise."""
 
     program: ClassVar[str] = "python offpac_il.py"  # the command that resumes its runs
+    # Settings measured not to help, which left the code: name -> (the value that meant
+    # "off", the last commit that had it). A run made with one on cannot be resumed here.
+    removed_settings: ClassVar[dict[str, tuple[float, str]]] = {
+        "critic_reg": (0.0, ""),
+        "critic_grad_penalty": (0.0, ""),
+        "critic_input_noise": (0.0, ""),
+        "expert_state_negatives": (0.0, "f379e83"),
+        "state_clip": (0.0, "44dc556"),
+        "policy_entropy": (0.0, "519758d"),
+    }
 
     total_steps: int = 300_000
     """Interaction budget; the learning rates decrease linearly to 0 over it."""
@@ -121,11 +131,6 @@ class Config(RunConfig):
     """Std of Gaussian noise on executed training actions (paper: 0; HalfCheetah, Walker2d: 0.3)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
-    # Maximum-entropy RL (SAC, under SQIL and IQ-Learn) keeps its policy off the tanh
-    # corners; the implicit policy's entropy is estimated from its own noise samples.
-    policy_entropy: float = 0.0
-    """Weight w of the policy step's entropy term: maximise E log q + w E_s H(s), H
-    estimated from the noise samples of each state (nets.squashed_entropy) (paper: 0)."""
 
 
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
@@ -217,21 +222,12 @@ def critic_step(
 # === The policy step: gradient (6) ===
 
 
-def policy_gradient(
-    learner: Learner,
-    states: np.ndarray,
-    noise: np.ndarray,
-    total_rows: int,
-    entropy_weight: float = 0.0,
-):
+def policy_gradient(learner: Learner, states: np.ndarray, noise: np.ndarray, total_rows: int):
     """Gradient (6) of -mean log q(s, pi(s, z)) w.r.t. PN's parameters, on one chunk.
 
     states: (B, dim s); noise: (B*Z, dim z), Z noise vectors per state; total_rows: the
-    rows of the whole step, over which (6) averages. entropy_weight w > 0 (a deviation,
-    --policy-entropy) adds -w mean_s H(s), H the entropy estimate of nets.squashed_entropy
-    over each state's Z actions, written in PN's pre-tanh output u. Returns sums over the
-    chunk's rows, so chunks add up: (grads, loss, sum of q, (saturated components, all
-    components), sum of H over the chunk's states).
+    rows of the whole step, over which (6) averages. Returns sums over the chunk's rows,
+    so chunks add up: (grads, loss, sum of q, (saturated components, all components)).
     """
     actions, policy_cache = learner.policy.forward(states, noise)  # (B*Z, dim A)
     _, critic_cache = learner.critic.forward((states, actions))  # logits x (B*Z, 1)
@@ -241,39 +237,20 @@ def policy_gradient(
     (_, d_actions), _ = learner.critic.backward(
         d_x, critic_cache, through_head=False, param_grads=False, input_grads=(False, True)
     )
+    grads = learner.policy.backward(d_actions, policy_cache)  # Eq. (6): through tanh and PN
     log_q = nets.log_sigmoid(critic_cache.logits)
-    loss = -float(log_q.sum()) / total_rows
-    entropy_sum = 0.0
-    if entropy_weight > 0:  # BoundedPolicy only (check_config): a = tanh(u), u = logits
-        z_per_state, total_states = (
-            len(noise) // len(states),
-            total_rows // (len(noise) // len(states)),
-        )
-        entropy, d_entropy = nets.squashed_entropy(policy_cache.logits, z_per_state)
-        d_u = d_actions * (1.0 - actions * actions)  # through tanh, as in gradient (6)
-        d_u -= (entropy_weight / total_states) * d_entropy  # d(-w mean_s H(s))/du
-        _, grads = learner.policy.net.backward(
-            d_u, policy_cache, through_head=False, input_grads=False
-        )
-        entropy_sum = float(entropy.sum())
-        loss -= entropy_weight * entropy_sum / total_states
-    else:
-        grads = learner.policy.backward(d_actions, policy_cache)  # Eq. (6): through tanh, PN
     saturated = (np.count_nonzero(np.abs(actions) > 0.99), actions.size)
-    return grads, loss, float(critic_cache.output.sum()), saturated, entropy_sum
+    return grads, -float(log_q.sum()) / total_rows, float(critic_cache.output.sum()), saturated
 
 
-def policy_loss_and_grads(
-    learner: Learner, states: np.ndarray, noise: np.ndarray, entropy_weight: float = 0.0
-):
-    """-E_{s, z}[log q(s, pi(s, z))] and gradient (6), over row chunks on both cores (with
-    entropy_weight, minus that times the mean entropy estimate: `policy_gradient`).
+def policy_loss_and_grads(learner: Learner, states: np.ndarray, noise: np.ndarray):
+    """-E_{s, z}[log q(s, pi(s, z))] and gradient (6), over row chunks on both cores.
     states: (B, dim s); noise: (B*Z, dim z). Returns (loss, grads, stats)."""
     z_per_state = len(noise) // len(states)
 
     def chunk(rows: slice):
         z = noise[rows.start * z_per_state : rows.stop * z_per_state]
-        return policy_gradient(learner, states[rows], z, len(noise), entropy_weight)
+        return policy_gradient(learner, states[rows], z, len(noise))
 
     parts = harness.map_row_chunks(chunk, len(states), z_per_state)
     grads = {
@@ -281,8 +258,6 @@ def policy_loss_and_grads(
     }  # the chunks' partial sums, in a fixed order
     saturation = sum(p[3][0] for p in parts) / sum(p[3][1] for p in parts)
     stats = {"q_policy": sum(p[2] for p in parts) / len(noise), "saturation": saturation}
-    if entropy_weight > 0:
-        stats["policy_entropy"] = sum(p[4] for p in parts) / len(states)
     return sum(p[1] for p in parts), grads, stats
 
 
@@ -305,7 +280,7 @@ def policy_step(
     """Alg. 1, line 14: one RMSProp step on PN by gradient (6), `noise_samples` z per state."""
     rows = len(states) * learner.policy.samples_per_state(config.noise_samples)
     noise = rng.standard_normal((rows, learner.policy.noise_dim), np.float32)
-    _, grads, stats = policy_loss_and_grads(learner, states, noise, config.policy_entropy)
+    _, grads, stats = policy_loss_and_grads(learner, states, noise)
     learner.policy_optimizer.step(learner.policy.net.params, grads, lr)
     stats["policy_grad_norm"] = math.sqrt(sum(float((g * g).sum()) for g in grads.values()))
     return stats
@@ -664,7 +639,7 @@ def check_config(config: Config) -> None:
     harness.check_choices(config, {"termination": TERMINATIONS, "sampling": expert.SAMPLING_MODES})
     at_least_one = ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples")
     at_least_one += ("target_samples", "eval_every")
-    non_negative = ("checkpoint_every", "log_every", "exploration_noise", "policy_entropy")
+    non_negative = ("checkpoint_every", "log_every", "exploration_noise")
     harness.check_numbers(
         config,
         {name: (1, math.inf, "[)") for name in at_least_one}
@@ -678,8 +653,6 @@ def check_config(config: Config) -> None:
     for name in ("policy_hidden", "critic_hidden"):
         if not getattr(config, name) or min(getattr(config, name)) < 1:
             raise harness.UserError(f"{harness.flag(name)} needs layer sizes of at least 1")
-    if config.policy_entropy > 0 and config.noise_samples < 2:
-        raise harness.UserError("--policy-entropy needs --noise-samples of at least 2")
 
 
 TERMINATIONS = ("bootstrap", "absorbing", "zero")

@@ -304,8 +304,6 @@ def variant_of(config: AblationConfig) -> Variant:
     if config.policy_type not in POLICY_TYPES:
         raise UserError(f"--policy-type must be one of {', '.join(POLICY_TYPES)}")
     hooks: dict = {}
-    if config.policy_type != "bounded" and config.policy_entropy > 0:
-        raise UserError("--policy-entropy estimates the bounded policy's entropy only")
     if config.policy_type == "gaussian":
         hooks |= {"make_policy": GaussianPolicy.create, "diagnostics": gaussian_diagnostics}
         hooks["progress_fields"] = ("policy_std",)

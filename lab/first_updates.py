@@ -159,7 +159,6 @@ def main(argv=None) -> int:
     parser.add_argument("--policy-lr", type=float, default=offpac_il.Config.policy_lr)
     parser.add_argument("--policy-expert-states", type=float, default=0.5)
     parser.add_argument("--exploration-noise", type=float, default=0.0)
-    parser.add_argument("--policy-entropy", type=float, default=0.0)
     parser.add_argument("--gamma", type=float, default=offpac_il.Config.gamma)
     args = parser.parse_args(argv)
     config = offpac_il.Config(
@@ -170,7 +169,6 @@ def main(argv=None) -> int:
         policy_lr=args.policy_lr,
         policy_expert_states=args.policy_expert_states,
         exploration_noise=args.exploration_noise,
-        policy_entropy=args.policy_entropy,
         gamma=args.gamma,
     )
 

@@ -92,6 +92,20 @@ def test_a_hand_edited_config_is_refused_in_one_line(tmp_path, capsys, edit, mes
     assert {p.name for p in run_dir.iterdir()} <= {harness.CONFIG, harness.LOCK}
 
 
+def test_a_run_made_with_a_removed_setting_is_not_resumed_without_it(tmp_path, capsys):
+    """--policy-entropy left the code; a run made with it on would be silently changed by
+    a resume that dropped it, so it is refused, naming the commit that still has it. A
+    run that had it off resumes as before (here: up to its missing checkpoint)."""
+    run_dir = tmp_path / "run"
+    saved = {harness.PROGRAM: offpac_il.Config.program, **offpac_il.Config().__dict__}
+    harness.write_text(run_dir / harness.CONFIG, json.dumps({**saved, "policy_entropy": 0.1}))
+    assert offpac_il.main(["--resume", str(run_dir)]) == 2
+    one_line(capsys, "was made with --policy-entropy 0.1, a setting this code no longer has;")
+    harness.write_text(run_dir / harness.CONFIG, json.dumps({**saved, "policy_entropy": 0.0}))
+    assert offpac_il.main(["--resume", str(run_dir)]) == 2
+    one_line(capsys, "checkpoint.npz is missing")
+
+
 def test_lab_baselines_names_the_program_of_a_learner_run(tmp_path, capsys):
     run_dir = tmp_path / "run"
     harness.write_config(run_dir, {harness.PROGRAM: "python offpac_il.py", "env": "Hopper-v4"})
