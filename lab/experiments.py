@@ -668,7 +668,8 @@ def run_settings(run_dir) -> dict:
 def load_run(run_dir) -> Run:
     """Labels from sweep.json, else from config.json (a run made by hand). A run is
     finished when its policy_final.npz exists or, for a run kept without its policies,
-    when its progress.csv reaches the interaction budget of its config.json."""
+    when its progress.csv reaches the interaction budget of its config.json (BC: when it
+    stopped, `bc_stopped`)."""
     run_dir = Path(run_dir)
     labels = {"method": "Ours"}
     config = {}
@@ -681,7 +682,24 @@ def load_run(run_dir) -> Run:
     progress = read_progress(run_dir)
     budget = config.get("total_steps")
     reached = bool(progress) and budget is not None and progress["interactions"][-1] >= budget
+    reached = reached or bc_stopped(run_dir, config)
     return Run(run_dir, labels, progress, (run_dir / FINISHED).exists() or reached)
+
+
+def bc_stopped(run_dir: Path, config: dict) -> bool:
+    """Has a BC run (whose budget counts updates, not interactions) ended: its last
+    evaluation at the update budget, or `patience` evaluations after its best one (the
+    early stop of lab/baselines.py), by its diagnostics.csv?"""
+    diagnostics = run_dir / "diagnostics.csv"
+    if config.get("method") != "bc" or not diagnostics.exists():
+        return False
+    with open(diagnostics) as f:
+        rows = list(csv.DictReader(f))
+    if not rows or not rows[-1].get("best_update"):
+        return False
+    updates, best = float(rows[-1]["updates"]), float(rows[-1]["best_update"])
+    patience_updates = config["patience"] * config["eval_every"]
+    return updates >= config["total_steps"] or updates - best >= patience_updates
 
 
 def load_runs(*roots) -> list[Run]:

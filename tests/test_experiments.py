@@ -665,3 +665,19 @@ def test_restore_arrays_turns_a_missing_key_or_wrong_shape_into_a_user_error(tmp
     for load in (missing, wrong_shape):
         with pytest.raises(UserError, match="policy.npz: does not fit this run"):
             experiments.restore_arrays(tmp_path / "policy.npz", load)
+
+
+def test_a_bc_run_kept_without_its_policies_is_finished_once_it_stopped(tmp_path):
+    """BC's budget counts updates and it stops early; a BC run whose policies left the
+    tree is finished by its diagnostics.csv (results/sweep keeps such runs)."""
+    config = {"method": "bc", "env": "Ant-v4", "total_steps": 20000, "eval_every": 250}
+    progress = "interactions,normalized_score,updates\n0,0.1,0\n0,0.2,6500\n"
+    for patience, last, finished in [(20, 6500, True), (21, 6500, False), (99, 20000, True)]:
+        run_dir = tmp_path / f"p{patience}-{last}"
+        run_dir.mkdir()
+        (run_dir / "config.json").write_text(json.dumps({**config, "patience": patience}))
+        (run_dir / "progress.csv").write_text(progress)
+        (run_dir / "diagnostics.csv").write_text(f"updates,best_update\n{last},1500\n")
+        assert experiments.load_run(run_dir).finished is finished, run_dir.name
+    (run_dir / "diagnostics.csv").unlink()
+    assert experiments.load_run(run_dir).finished is False
