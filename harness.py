@@ -193,14 +193,11 @@ class CommandLineParser(argparse.ArgumentParser):
         sys.exit(2)
 
 
-def config_from_command_line(
-    argv, config_class, description, paper: dict, may_change, before_they_existed=None
-):
+def config_from_command_line(argv, config_class, description, paper: dict, may_change):
     """(config, resume) from a trainer's command line: one flag per `config_class` field,
     `--paper` (the `paper` values become the defaults; flags given still win) and
     `--resume RUN_DIR` (the saved settings, with only the flags in `may_change` given
-    anew; any other flag given must agree with the saved run). A setting the saved file
-    lacks takes its value in `before_they_existed`, else the paper's (see saved_config)."""
+    anew; any other flag given must agree with the saved run)."""
     parser = CommandLineParser(
         description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
@@ -232,7 +229,7 @@ def config_from_command_line(
     saved = {**saved, "run_dir": args.resume}
     settings = resumed_settings(saved, given, may_change)
     try:
-        return saved_config(config_class, settings, {**paper, **(before_they_existed or {})}), True
+        return saved_config(config_class, settings, paper), True
     except UserError as error:
         raise UserError(f"{Path(args.resume) / str(error)}") from None
 
@@ -283,10 +280,12 @@ def check_removed_settings(run_dir, saved: dict, removed: dict) -> None:
 
 def saved_config(config_class, saved: dict, paper: dict):
     """The config of a run's config.json. A setting the file lacks did not exist when
-    the run was made, so the run had the paper's behaviour there (`paper`); settings
-    the code no longer has are dropped."""
+    the run was made, so the run had the behaviour of before it existed: the class's
+    `settings_before_they_existed` where that differs from today's default, else the
+    paper's (`paper`). Settings the code no longer has are dropped (a resume refuses a
+    run that had one on: check_removed_settings)."""
     fields = {f.name: f for f in dataclasses.fields(config_class)}
-    values = {**paper, **saved}
+    values = {**paper, **getattr(config_class, "settings_before_they_existed", {}), **saved}
     return config_class(
         **{name: saved_value(f, values[name]) for name, f in fields.items() if name in values}
     )

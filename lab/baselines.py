@@ -51,6 +51,7 @@ import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -136,6 +137,8 @@ class GAILConfig(RunSettings):
     target_kl: float = 0.01
     """Stop an iteration's PPO epochs at a minibatch whose KL(pi_old || pi) exceeds
     1.5 x this (Spinning Up's rule; TRPO's step in the GAIL code is KL 0.01); 0: never."""
+    # A config.json from before target_kl existed ran without the KL stop.
+    settings_before_they_existed: ClassVar[dict] = {"target_kl": 0.0}
     entropy_coef: float = 0.0
     """Weight of the policy's entropy bonus."""
     max_grad_norm: float = 0.5
@@ -934,15 +937,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-# A setting's value for runs whose config.json predates it (what they ran with).
-SETTINGS_BEFORE_THEY_EXISTED = {GAILConfig: {"target_kl": 0.0}}
-
-
 def saved_settings(saved: dict) -> RunSettings:
-    """The settings of a run's config.json (its "method" names the class); a setting the
-    file lacks keeps the behaviour the run started with (SETTINGS_BEFORE_THEY_EXISTED)."""
-    cls = METHODS[saved["method"]][0]
-    return harness.saved_config(cls, saved, SETTINGS_BEFORE_THEY_EXISTED.get(cls, {}))
+    """The settings of a run's config.json (its "method" names the class; a setting the
+    file lacks: harness.saved_config)."""
+    return harness.saved_config(METHODS[saved["method"]][0], saved, {})
 
 
 def config_from(args: argparse.Namespace) -> RunSettings:

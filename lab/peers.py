@@ -69,6 +69,7 @@ import dataclasses
 import math
 import sys
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -152,11 +153,10 @@ class IQLearnConfig(PeerConfig):
     twin_critics: bool = False
     """Two critics and their minimum, as SAC; off: one critic, as the authors' MuJoCo
     settings (q_net SingleQCritic; with two, their critic diverges, their issue 11)."""
+    # IQ-Learn ran SAC's twin critics until one critic became its default: a config.json
+    # of that time lacks the setting and is read, and resumed, with two.
+    settings_before_they_existed: ClassVar[dict] = {"twin_critics": True}
 
-
-# What a run made before a setting existed had there, where that differs from today's
-# default: IQ-Learn ran SAC's twin critics until the one critic became its default.
-SETTINGS_BEFORE_THEY_EXISTED = {IQLearnConfig: {"twin_critics": True}}
 
 # A resumed run may extend its budget (no schedule depends on it) and change what only
 # logging and checkpoints read.
@@ -557,14 +557,8 @@ def parse(argv: list[str]) -> tuple[PeerConfig, str, bool]:
     method, argv = argv[0], argv[1:]
     if method not in METHODS:
         raise UserError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
-    config_class = METHODS[method].config_class
     config, resume = harness.config_from_command_line(
-        argv,
-        config_class,
-        METHODS[method].summary,
-        {},
-        RESUMABLE_CHANGES,
-        before_they_existed=SETTINGS_BEFORE_THEY_EXISTED.get(config_class, {}),
+        argv, METHODS[method].config_class, METHODS[method].summary, {}, RESUMABLE_CHANGES
     )
     if resume:
         saved = harness.read_config(config.run_dir)
@@ -576,12 +570,8 @@ def parse(argv: list[str]) -> tuple[PeerConfig, str, bool]:
 
 
 def saved_settings(saved: dict) -> PeerConfig:
-    """The settings of a peer run's config.json (its "method" names the class); a setting
-    the file lacks keeps the behaviour the run started with (SETTINGS_BEFORE_THEY_EXISTED)."""
-    config_class = METHODS[saved["method"]].config_class
-    return harness.saved_config(
-        config_class, saved, SETTINGS_BEFORE_THEY_EXISTED.get(config_class, {})
-    )
+    """The settings of a peer run's config.json (its "method" names the class)."""
+    return harness.saved_config(METHODS[saved["method"]].config_class, saved, {})
 
 
 def main(argv: list[str] | None = None) -> int:
