@@ -692,7 +692,8 @@ def check_config(config: Config) -> None:
         | {name: (0, 1, "[]") for name in ("policy_expert_states", "policy_average")}
         | {"rmsprop_decay": (0, 1, "[)"), "tau": (0, 1, "(]"), "gamma": (0, 1, "[)")},
     )
-    if config.expert_action_anchor > 0 and round(config.policy_expert_states * config.batch_size) < 1:
+    demonstrated_rows = round(config.policy_expert_states * config.batch_size)
+    if config.expert_action_anchor > 0 and demonstrated_rows < 1:
         raise harness.UserError("--expert-action-anchor needs --policy-expert-states above 0")
     for name in ("policy_hidden", "critic_hidden"):
         if not getattr(config, name) or min(getattr(config, name)) < 1:
