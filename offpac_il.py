@@ -87,6 +87,7 @@ class Config(RunConfig):
         "expert_state_negatives": (0.0, "f379e83"),
         "state_clip": (0.0, "44dc556"),
         "policy_entropy": (0.0, "519758d"),
+        "expert_action_anchor": (0.0, "08a20b2"),
     }
 
     total_steps: int = 300_000
@@ -131,10 +132,6 @@ class Config(RunConfig):
     """Std of Gaussian noise on executed training actions (paper: 0; HalfCheetah, Walker2d: 0.3)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
-    # A candidate of the research record (docs/results.md, one table): TD3+BC's term
-    # (Fujimoto & Gu, 2021) with a fixed weight in place of its alpha / mean|Q|.
-    expert_action_anchor: float = 0.0
-    """Weight w of w mean ||pi(s_E, z) - a_E||^2 / dim A added to gradient (6)'s loss (0: off)."""
 
 
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
@@ -226,25 +223,14 @@ def critic_step(
 # === The policy step: gradient (6) ===
 
 
-def policy_gradient(
-    learner: Learner,
-    states: np.ndarray,
-    noise: np.ndarray,
-    total_rows: int,
-    anchor: tuple[np.ndarray, np.ndarray] | None = None,
-):
+def policy_gradient(learner: Learner, states: np.ndarray, noise: np.ndarray, total_rows: int):
     """Gradient (6) of -mean log q(s, pi(s, z)) w.r.t. PN's parameters, on one chunk.
 
     states: (B, dim s); noise: (B*Z, dim z), Z noise vectors per state; total_rows: the
     rows of the whole step, over which (6) averages. Returns sums over the chunk's rows,
     so chunks add up: (grads, loss, sum of q, (saturated components, all components)).
-
-    anchor (--expert-action-anchor): (a_E (B, dim A), c (B,)) adds, per row of state b,
-    c_b ||a - a_E_b||^2 / dim A to the loss's sum, whose action gradient is
-    2 c_b (a - a_E_b) / dim A; c is 0 at replay states.
     """
     actions, policy_cache = learner.policy.forward(states, noise)  # (B*Z, dim A)
-    anchor_loss = 0.0
     _, critic_cache = learner.critic.forward((states, actions))  # logits x (B*Z, 1)
     # Q = log q (Eq. 10): d(-log q)/dx = -(1 - q), averaged over all rows.
     d_x = -nets.log_sigmoid_grad(critic_cache.logits) / total_rows
@@ -252,30 +238,20 @@ def policy_gradient(
     (_, d_actions), _ = learner.critic.backward(
         d_x, critic_cache, through_head=False, param_grads=False, input_grads=(False, True)
     )
-    if anchor is not None:
-        expert_actions, weights = anchor
-        z_per_state = len(noise) // len(states)
-        error = actions - np.repeat(expert_actions, z_per_state, axis=0)  # (B*Z, dim A)
-        c = np.repeat(weights, z_per_state)[:, None] / (total_rows * actions.shape[1])
-        anchor_loss = float((c * error**2).sum())
-        d_actions = d_actions + 2.0 * c * error
     grads = learner.policy.backward(d_actions, policy_cache)  # Eq. (6): through tanh and PN
     log_q = nets.log_sigmoid(critic_cache.logits)
     saturated = (np.count_nonzero(np.abs(actions) > 0.99), actions.size)
-    loss = -float(log_q.sum()) / total_rows + anchor_loss
-    return grads, loss, float(critic_cache.output.sum()), saturated
+    return grads, -float(log_q.sum()) / total_rows, float(critic_cache.output.sum()), saturated
 
 
-def policy_loss_and_grads(learner: Learner, states: np.ndarray, noise: np.ndarray, anchor=None):
+def policy_loss_and_grads(learner: Learner, states: np.ndarray, noise: np.ndarray):
     """-E_{s, z}[log q(s, pi(s, z))] and gradient (6), over row chunks on both cores.
-    states: (B, dim s); noise: (B*Z, dim z); anchor: see policy_gradient.
-    Returns (loss, grads, stats)."""
+    states: (B, dim s); noise: (B*Z, dim z). Returns (loss, grads, stats)."""
     z_per_state = len(noise) // len(states)
 
     def chunk(rows: slice):
         z = noise[rows.start * z_per_state : rows.stop * z_per_state]
-        part = None if anchor is None else (anchor[0][rows], anchor[1][rows])
-        return policy_gradient(learner, states[rows], z, len(noise), part)
+        return policy_gradient(learner, states[rows], z, len(noise))
 
     parts = harness.map_row_chunks(chunk, len(states), z_per_state)
     grads = {
@@ -288,41 +264,24 @@ def policy_loss_and_grads(learner: Learner, states: np.ndarray, noise: np.ndarra
 
 def policy_states(
     expert_buffer: Triplets, replay: ReplayBuffer, config: Config, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray]:
+) -> np.ndarray:
     """The states of one policy step (batch_size, dim s): a fresh replay batch (line 13),
     the first `policy_expert_states` of it replaced by demonstration states (a
-    deviation: without them Hopper-v4 reaches the expert and falls away). Returns
-    (states, the demonstrated actions of those first rows)."""
+    deviation: without them Hopper-v4 reaches the expert and falls away)."""
     states = replay.sample(rng, config.batch_size).states
     n_expert = round(config.policy_expert_states * config.batch_size)
-    expert_actions = np.zeros((0, replay.data.actions.shape[1]), np.float32)
     if n_expert:
-        demonstrated = expert_buffer.sample(rng, n_expert)
-        states[:n_expert], expert_actions = demonstrated.states, demonstrated.actions
-    return states, expert_actions
+        states[:n_expert] = expert_buffer.sample(rng, n_expert).states
+    return states
 
 
 def policy_step(
-    learner: Learner,
-    states: np.ndarray,
-    config: Config,
-    lr: float,
-    rng: np.random.Generator,
-    expert_actions: np.ndarray | None = None,
+    learner: Learner, states: np.ndarray, config: Config, lr: float, rng: np.random.Generator
 ) -> dict[str, float]:
-    """Alg. 1, line 14: one RMSProp step on PN by gradient (6), `noise_samples` z per state.
-    expert_actions: a_E of the first rows of `states`, for --expert-action-anchor."""
+    """Alg. 1, line 14: one RMSProp step on PN by gradient (6), `noise_samples` z per state."""
     rows = len(states) * learner.policy.samples_per_state(config.noise_samples)
     noise = rng.standard_normal((rows, learner.policy.noise_dim), np.float32)
-    anchor = None
-    if config.expert_action_anchor > 0 and expert_actions is not None and len(expert_actions):
-        n = len(expert_actions)  # c = w B / n on those rows: w times the mean over them
-        targets = np.zeros((len(states), expert_actions.shape[1]), expert_actions.dtype)
-        targets[:n] = expert_actions
-        weights = np.zeros(len(states))
-        weights[:n] = config.expert_action_anchor * len(states) / n
-        anchor = (targets, weights)
-    _, grads, stats = policy_loss_and_grads(learner, states, noise, anchor)
+    _, grads, stats = policy_loss_and_grads(learner, states, noise)
     learner.policy_optimizer.step(learner.policy.net.params, grads, lr)
     stats["policy_grad_norm"] = math.sqrt(sum(float((g * g).sum()) for g in grads.values()))
     return stats
@@ -511,8 +470,8 @@ def update(
     expert_batch = expert_buffer.sample(rng, config.batch_size)
     replay_batch = replay.sample(rng, config.batch_size)
     stats = variant.critic_step(learner, expert_batch, replay_batch, config, critic_lr, rng)
-    states, expert_actions = policy_states(expert_buffer, replay, config, rng)
-    stats.update(policy_step(learner, states, config, policy_lr, rng, expert_actions))
+    states = policy_states(expert_buffer, replay, config, rng)
+    stats.update(policy_step(learner, states, config, policy_lr, rng))
     if learner.average_policy is not None:
         # theta_avg <- rate theta + (1 - rate) theta_avg: rides out PN's short relapses.
         nets.soft_update(learner.average_policy.net, learner.policy.net, config.policy_average)
@@ -681,7 +640,7 @@ def check_config(config: Config) -> None:
     harness.check_choices(config, {"termination": TERMINATIONS, "sampling": expert.SAMPLING_MODES})
     at_least_one = ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples")
     at_least_one += ("target_samples", "eval_every")
-    non_negative = ("checkpoint_every", "log_every", "exploration_noise", "expert_action_anchor")
+    non_negative = ("checkpoint_every", "log_every", "exploration_noise")
     harness.check_numbers(
         config,
         {name: (1, math.inf, "[)") for name in at_least_one}
@@ -692,9 +651,6 @@ def check_config(config: Config) -> None:
         | {name: (0, 1, "[]") for name in ("policy_expert_states", "policy_average")}
         | {"rmsprop_decay": (0, 1, "[)"), "tau": (0, 1, "(]"), "gamma": (0, 1, "[)")},
     )
-    demonstrated_rows = round(config.policy_expert_states * config.batch_size)
-    if config.expert_action_anchor > 0 and demonstrated_rows < 1:
-        raise harness.UserError("--expert-action-anchor needs --policy-expert-states above 0")
     for name in ("policy_hidden", "critic_hidden"):
         if not getattr(config, name) or min(getattr(config, name)) < 1:
             raise harness.UserError(f"{harness.flag(name)} needs layer sizes of at least 1")

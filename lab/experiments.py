@@ -1334,11 +1334,11 @@ def gradient_noise(
     for z in samples:
         full = np.array(
             [
-                flat_gradient(offpac_il.policy_states(expert_buffer, replay, config, rng)[0], z)
+                flat_gradient(offpac_il.policy_states(expert_buffer, replay, config, rng), z)
                 for _ in range(draws)
             ]
         )
-        fixed = offpac_il.policy_states(expert_buffer, replay, config, rng)[0]
+        fixed = offpac_il.policy_states(expert_buffer, replay, config, rng)
         noise_only = np.array([flat_gradient(fixed, z) for _ in range(draws)])
         mean, total = full.mean(axis=0), full.var(axis=0, ddof=1).sum()
         noise_variance = noise_only.var(axis=0, ddof=1).sum()

@@ -160,7 +160,6 @@ def main(argv=None) -> int:
     parser.add_argument("--policy-expert-states", type=float, default=0.5)
     parser.add_argument("--exploration-noise", type=float, default=0.0)
     parser.add_argument("--gamma", type=float, default=offpac_il.Config.gamma)
-    parser.add_argument("--expert-action-anchor", type=float, default=0.0)
     args = parser.parse_args(argv)
     config = offpac_il.Config(
         env=args.env,
@@ -171,7 +170,6 @@ def main(argv=None) -> int:
         policy_expert_states=args.policy_expert_states,
         exploration_noise=args.exploration_noise,
         gamma=args.gamma,
-        expert_action_anchor=args.expert_action_anchor,
     )
 
     def body() -> None:

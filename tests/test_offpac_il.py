@@ -184,71 +184,6 @@ def test_policy_gradient_check_catches_a_wrong_gradient():
         assert_gradient_close(wrong["W1"], numeric, OBJECTIVE_TOL)
 
 
-@given(seed=st.integers(0, 2**16), states=st.integers(1, 4), noise_samples=st.integers(1, 4))
-def test_expert_action_anchor_gradient_matches_finite_differences(seed, states, noise_samples):
-    """--expert-action-anchor: the loss is gradient (6)'s plus, per row, c_b ||a - a_E||^2 /
-    dim A averaged over all rows; c is 0 at the replay states."""
-    learner, _, rng = small_learner(seed)
-    s = rng.standard_normal((states, 3))
-    z = rng.standard_normal((states * noise_samples, 3))
-    targets = rng.uniform(-1, 1, (states, 2))
-    weights = rng.uniform(0, 2, states) * (rng.random(states) < 0.7)
-    actions, policy_cache = learner.policy.forward(s, z)
-    assume(away_from_kinks(policy_cache, learner.critic.forward((s, actions))[1]))
-
-    def loss():
-        return offpac_il.policy_loss_and_grads(learner, s, z, (targets, weights))[0]
-
-    plain = offpac_il.policy_loss_and_grads(learner, s, z)[0]
-    repeated = np.repeat(s, noise_samples, axis=0)
-    error = learner.policy.act(repeated, z) - np.repeat(targets, noise_samples, axis=0)
-    anchor = (np.repeat(weights, noise_samples)[:, None] * error**2).sum() / (len(z) * 2)
-    np.testing.assert_allclose(loss(), plain + anchor, rtol=1e-12)
-    grads = offpac_il.policy_loss_and_grads(learner, s, z, (targets, weights))[1]
-    for name, param in learner.policy.net.params.items():
-        assert_gradient_close(
-            grads[name],
-            numerical_gradient(loss, param, OBJECTIVE_EPS),
-            OBJECTIVE_TOL,
-            f"anchored gradient (6) d/d{name}",
-        )
-
-
-def test_expert_action_anchor_check_catches_a_wrong_gradient():
-    """The anchor's gradient without its factor 2 is caught."""
-    learner, _, rng = small_learner(3)
-    s, z = rng.standard_normal((2, 3)), rng.standard_normal((6, 3))
-    targets, weights = rng.uniform(-1, 1, (2, 2)), np.array([5.0, 0.0])
-
-    def loss():
-        return offpac_il.policy_loss_and_grads(learner, s, z, (targets, weights))[0]
-
-    numeric = numerical_gradient(loss, learner.policy.net.params["W1"], OBJECTIVE_EPS)
-    right = offpac_il.policy_loss_and_grads(learner, s, z, (targets, weights))[1]["W1"]
-    # Without the factor 2 the anchor's part is that of weights / 2.
-    wrong = offpac_il.policy_loss_and_grads(learner, s, z, (targets, weights / 2))[1]["W1"]
-    assert_gradient_close(right, numeric, OBJECTIVE_TOL)
-    with pytest.raises(AssertionError):
-        assert_gradient_close(wrong, numeric, OBJECTIVE_TOL)
-
-
-def test_policy_step_anchors_the_demonstrated_rows_at_weight_w():
-    """policy_step turns w and the first rows' a_E into c = w B / n on those rows, so the
-    anchor is w times its mean over the demonstrated rows."""
-    learner, config, rng = small_learner(6, noise_samples=2, expert_action_anchor=0.5)
-    states, expert_actions = rng.standard_normal((4, 3)), rng.uniform(-1, 1, (1, 2))
-    before = copy.deepcopy(learner)
-    offpac_il.policy_step(learner, states, config, 1e-3, np.random.default_rng(8), expert_actions)
-    noise = np.random.default_rng(8).standard_normal((4 * 2, 3), np.float32)
-    targets = np.zeros((4, 2))
-    targets[0] = expert_actions[0]
-    anchor = (targets, np.array([0.5 * 4, 0.0, 0.0, 0.0]))
-    _, grads, _ = offpac_il.policy_loss_and_grads(before, states, noise, anchor)
-    before.policy_optimizer.step(before.policy.net.params, grads, 1e-3)
-    for name, value in learner.policy.net.params.items():
-        np.testing.assert_allclose(value, before.policy.net.params[name], rtol=1e-12)
-
-
 def test_policy_step_draws_noise_samples_per_state_and_moves_pn_only(monkeypatch):
     """One policy step: `noise_samples` z per state from the run's Generator, an RMSProp
     step on PN by gradient (6), QN untouched; the stats report the gradient's norm."""
@@ -399,19 +334,14 @@ def test_policy_expert_states_fraction(monkeypatch, fraction):
         replay.add(rng.standard_normal(3) + 100.0, rng.uniform(-1, 1, 2), np.zeros(3), False)
     seen = {}
 
-    def capture(learner, states, config, lr, rng, expert_actions):
-        seen["states"], seen["expert_actions"] = states, expert_actions
+    def capture(learner, states, config, lr, rng):
+        seen["states"] = states
         return {}
 
     monkeypatch.setattr(offpac_il, "policy_step", capture)
     offpac_il.update(learner, expert_buffer, replay, config, 0, rng)
     from_expert = (np.abs(seen["states"]) < 50).all(axis=1)  # replay states sit near 100
-    n = round(fraction * 8)
-    assert from_expert.sum() == n and from_expert[:n].all()
-    # The demonstrated actions handed on are those of the demonstrated states drawn.
-    for state, action in zip(seen["states"][:n], seen["expert_actions"], strict=True):
-        match = np.isclose(expert_buffer.states, state, atol=1e-6).all(axis=1)  # float32 rows
-        assert np.isclose(expert_buffer.actions[match], action, atol=1e-6).all(axis=1).any()
+    assert from_expert.sum() == round(fraction * 8)
 
 
 def test_update_decays_the_learning_rates_linearly_and_uses_the_variants_critic_step(
@@ -429,7 +359,7 @@ def test_update_decays_the_learning_rates_linearly_and_uses_the_variants_critic_
         calls.append(("critic", lr, len(expert_batch.states), len(replay_batch.states)))
         return {"critic_loss": 0.0}
 
-    def policy_step(learner, states, config, lr, rng, expert_actions):
+    def policy_step(learner, states, config, lr, rng):
         calls.append(("policy", lr, len(states)))
         return {"q_policy": 0.5}
 
