@@ -699,10 +699,7 @@ def train_bc(config: BCConfig, resume: bool = False) -> harness.Progress:
                 "policy_grad_norm": grad_norm,
             }
             run.evaluate(agent, {k: v for k, v in measured.items() if np.isfinite(v)})
-        if (
-            progress.updates >= config.total_steps
-            or agent.evaluations_since_best >= config.patience
-        ):
+        if bc_finished(config, progress.updates, agent.evaluations_since_best):
             break
         for _ in range(min(config.eval_every, config.total_steps - progress.updates)):
             batch = training[rng.integers(0, len(training), config.batch_size)]
@@ -935,6 +932,12 @@ def build_parser() -> argparse.ArgumentParser:
             "saved settings (other flags are ignored)",
         )
     return parser
+
+
+def bc_finished(config: BCConfig, updates: int, evaluations_since_best: int) -> bool:
+    """BC's end: the update budget, or `patience` evaluations without a better held-out
+    likelihood (early stopping)."""
+    return updates >= config.total_steps or evaluations_since_best >= config.patience
 
 
 def saved_settings(saved: dict) -> RunSettings:

@@ -687,9 +687,8 @@ def load_run(run_dir) -> Run:
 
 
 def bc_stopped(run_dir: Path, config: dict) -> bool:
-    """Has a BC run (whose budget counts updates, not interactions) ended: its last
-    evaluation at the update budget, or `patience` evaluations after its best one (the
-    early stop of lab/baselines.py), by its diagnostics.csv?"""
+    """Has a BC run (whose budget counts updates, not interactions) ended, by its
+    diagnostics.csv's last evaluation and lab/baselines.bc_finished?"""
     diagnostics = run_dir / "diagnostics.csv"
     if config.get("method") != "bc" or not diagnostics.exists():
         return False
@@ -697,9 +696,12 @@ def bc_stopped(run_dir: Path, config: dict) -> bool:
         rows = list(csv.DictReader(f))
     if not rows or not rows[-1].get("best_update"):
         return False
-    updates, best = float(rows[-1]["updates"]), float(rows[-1]["best_update"])
-    patience_updates = config["patience"] * config["eval_every"]
-    return updates >= config["total_steps"] or updates - best >= patience_updates
+    from lab import baselines
+
+    settings = baselines.saved_settings(config)
+    updates, best = int(float(rows[-1]["updates"])), int(float(rows[-1]["best_update"]))
+    # Evaluations come every eval_every updates, so those since the best one:
+    return baselines.bc_finished(settings, updates, (updates - best) // settings.eval_every)
 
 
 def load_runs(*roots) -> list[Run]:
