@@ -132,6 +132,9 @@ class Config(RunConfig):
     """Std of Gaussian noise on executed training actions (paper: 0; HalfCheetah, Walker2d: 0.3)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
+    critic_interpolate_penalty: float = 0.0
+    """Weight of DAC's penalty mean (||dx/d[s, a]|| - 1)^2 on QN's logit between expert
+    and replay pairs (0: off; DAC: 10)."""
 
 
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
@@ -198,6 +201,22 @@ def concatenated(expert_batch: Triplets, replay_batch: Triplets) -> Triplets:
     )
 
 
+def interpolate_penalty(
+    critic: nets.MLP, expert_batch: Triplets, replay_batch: Triplets, rng: np.random.Generator
+) -> tuple[float, dict[str, np.ndarray]]:
+    """Not in the paper: DAC's (Kostrikov et al., 2019) smooth-critic term, the WGAN-GP
+    penalty mean (||dx/du|| - 1)^2 on QN's logit x at u = e u_B + (1 - e) u_E, each row's
+    e ~ U(0, 1) pairing the i-th replay pair u_B = [s, a] with the i-th expert pair u_E.
+    It bounds how steeply x, and so log q, can change between the demonstrated pairs and
+    the learner's, the slope that gradient (6) follows. Its gradient w.r.t. QN's weights is
+    derived in nets.MLP.input_gradient_penalty. Returns (penalty, grads)."""
+    e = rng.uniform(size=(len(expert_batch.states), 1)).astype(critic.dtype)
+    states = e * replay_batch.states + (1 - e) * expert_batch.states
+    actions = e * replay_batch.actions + (1 - e) * expert_batch.actions
+    _, cache = critic.forward((states, actions))
+    return critic.input_gradient_penalty(cache, centre=1.0)
+
+
 def critic_step(
     learner: Learner,
     expert_batch: Triplets,
@@ -213,6 +232,15 @@ def critic_step(
     batch = concatenated(expert_batch, replay_batch)  # (2n, ...)
     t, stats = targets(learner, batch, n, config, rng)
     loss, grads, cache = critic_loss_and_grads(learner.critic, batch, t[:, None], n)
+    if config.critic_interpolate_penalty > 0:
+        weight = config.critic_interpolate_penalty
+        penalty, penalty_grads = interpolate_penalty(
+            learner.critic, expert_batch, replay_batch, rng
+        )
+        loss += weight * penalty
+        for name, grad in penalty_grads.items():
+            grads[name] += weight * grad
+        stats = stats | {"critic_penalty": penalty}
     learner.critic_optimizer.step(learner.critic.params, grads, lr)
     nets.soft_update(learner.target_critic, learner.critic, config.tau)
     q = cache.output[:, 0]  # q_nu(s, a): the expert rows, then the replay rows
@@ -641,6 +669,7 @@ def check_config(config: Config) -> None:
     at_least_one = ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples")
     at_least_one += ("target_samples", "eval_every")
     non_negative = ("checkpoint_every", "log_every", "exploration_noise")
+    non_negative += ("critic_interpolate_penalty",)
     harness.check_numbers(
         config,
         {name: (1, math.inf, "[)") for name in at_least_one}

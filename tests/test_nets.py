@@ -262,6 +262,80 @@ def test_input_gradient_sq_norm_needs_one_logit_and_a_hidden_layer():
             mlp.input_gradient_sq_norm(mlp.forward(np.zeros((2, 3)))[1])
 
 
+@given(
+    batch=batches,
+    blocks=st.lists(widths, min_size=1, max_size=2),
+    hidden=st.lists(widths, min_size=1, max_size=3),
+    centre=st.sampled_from([0.0, 1.0, 2.5]),
+    seed=seeds,
+)
+def test_input_gradient_penalty(batch, blocks, hidden, centre, seed):
+    """P = mean_n (||dx_n/du_n|| - centre)^2 (WGAN-GP's, DAC's with centre 1): its value
+    from `backward`'s input gradients, its gradient from finite differences of P itself
+    (a forward pass and the penalty's own chain per step)."""
+    rng = np.random.default_rng(seed)
+    mlp = nets.MLP.create([sum(blocks), *hidden, 1], "sigmoid", rng, dtype=np.float64)
+    for i in range(mlp.n_layers):
+        mlp.params[f"b{i}"][...] = rng.normal(scale=0.5, size=mlp.sizes[i + 1])
+    x = tuple(rng.normal(size=(batch, width)) for width in blocks)
+    cache = away_from_kink(mlp, x)
+    penalty, grads = mlp.input_gradient_penalty(cache, centre)
+
+    d_x, _ = mlp.backward(np.ones((batch, 1)), cache, through_head=False, param_grads=False)
+    norms = np.linalg.norm(np.concatenate(d_x, axis=1) if isinstance(d_x, tuple) else d_x, axis=1)
+    assume(norms.min() > 1e-3)  # ||g|| is not differentiable at 0
+    assert penalty == pytest.approx(((norms - centre) ** 2).mean(), rel=1e-12)
+
+    def f():
+        return mlp.input_gradient_penalty(mlp.forward(x)[1], centre)[0]
+
+    assert set(grads) == {f"W{i}" for i in range(mlp.n_layers)}  # biases: zero, below
+    for key, value in mlp.params.items():
+        numeric = numerical_gradient(f, value)
+        if key in grads:
+            assert_gradient_close(grads[key], numeric, TOL, f"penalty/{key}", floor=FD_FLOOR)
+        else:
+            assert np.abs(numeric).max() < 1e-8, key
+
+
+@pytest.mark.parametrize("mistake", ["ignored slopes", "zero-centred"])
+def test_input_gradient_penalty_check_catches_a_wrong_gradient(monkeypatch, mistake):
+    """The check above fails for a penalty gradient that forgets the leaky-ReLU slopes,
+    and for one computed about the wrong centre."""
+    rng = np.random.default_rng(3)
+    mlp = nets.MLP.create([3, 5, 4, 1], "sigmoid", rng, dtype=np.float64)
+    x = rng.normal(size=(6, 3))
+    _, cache = mlp.forward(x)
+    assert min_abs_preactivation(cache) > KINK_MARGIN  # this seed's sample is clean
+    assert any((a < 0).any() for a in cache.activations)  # some units are off
+
+    def f():
+        return mlp.input_gradient_penalty(mlp.forward(x)[1], 1.0)[0]
+
+    numeric = numerical_gradient(f, mlp.params["W1"])
+    right = mlp.input_gradient_penalty(cache, 1.0)[1]
+    assert_gradient_close(right["W1"], numeric, TOL, floor=FD_FLOOR)
+    if mistake == "ignored slopes":
+        monkeypatch.setattr(nets, "LEAKY_SLOPE", 1.0)  # every unit treated as on
+        wrong = mlp.input_gradient_penalty(cache, 1.0)[1]
+    else:
+        wrong = mlp.input_gradient_penalty(cache, 0.0)[1]
+    with pytest.raises(AssertionError):
+        assert_gradient_close(wrong["W1"], numeric, TOL, floor=FD_FLOOR)
+
+
+def test_input_gradient_penalty_refuses_what_it_cannot_compute():
+    rng = np.random.default_rng(0)
+    for sizes in ([3, 4, 2], [3, 1]):
+        mlp = nets.MLP.create(sizes, "sigmoid", rng, dtype=np.float64)
+        with pytest.raises(ValueError, match="one output and a hidden layer"):
+            mlp.input_gradient_penalty(mlp.forward(np.zeros((2, 3)))[1])
+    mlp = nets.MLP.create([3, 4, 1], "sigmoid", rng, dtype=np.float64)
+    shared = mlp.forward((np.zeros((1, 2)), np.zeros((4, 1))))[1]  # one row serves four
+    with pytest.raises(ValueError, match="row by row"):
+        mlp.input_gradient_penalty(shared)
+
+
 @st.composite
 def block_inputs(draw):
     """Input blocks for an MLP: G shared rows serving N = G * K rows, as in the policy

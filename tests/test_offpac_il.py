@@ -271,6 +271,67 @@ def test_critic_step_is_objective_18_then_the_target_update(monkeypatch):
     assert stats["my_stat"] == 1.5
 
 
+@given(seed=st.integers(0, 2**16), n=st.integers(1, 4))
+def test_interpolate_penalty_matches_finite_differences(seed, n):
+    """DAC's penalty as the critic step computes it, on points between the i-th expert
+    and the i-th replay pair: its gradient in every weight against finite differences
+    of the penalty itself (each evaluation draws the same points)."""
+    learner, _, rng = small_learner(seed)
+    expert_rows, replay_rows = random_triplets(rng, n), random_triplets(rng, n)
+
+    def penalty_and_grads():
+        draws = np.random.default_rng(seed)
+        return offpac_il.interpolate_penalty(learner.critic, expert_rows, replay_rows, draws)
+
+    e = np.random.default_rng(seed).uniform(size=(n, 1))
+    states = e * replay_rows.states + (1 - e) * expert_rows.states
+    actions = e * replay_rows.actions + (1 - e) * expert_rows.actions
+    _, cache = learner.critic.forward((states, actions))
+    assume(away_from_kinks(cache))
+    penalty, grads = penalty_and_grads()
+    assert penalty == pytest.approx(learner.critic.input_gradient_penalty(cache, 1.0)[0])
+    for name, param in learner.critic.params.items():
+        numeric = numerical_gradient(lambda: penalty_and_grads()[0], param, OBJECTIVE_EPS)
+        if name in grads:
+            assert_gradient_close(grads[name], numeric, OBJECTIVE_TOL, f"penalty d/d{name}")
+        else:
+            assert np.abs(numeric).max() < 1e-8, name
+
+
+def test_critic_step_adds_the_weighted_penalty(monkeypatch):
+    """With --critic-interpolate-penalty w the step's gradient is (18)'s plus w times the
+    penalty's, on the points drawn after the targets; off, the step draws nothing more."""
+    weight = 10.0
+    learner, config, rng = small_learner(7, critic_interpolate_penalty=weight)
+    expert_rows, replay_rows = random_triplets(rng, 3), random_triplets(rng, 3)
+    applied = {}
+    monkeypatch.setattr(
+        learner.critic_optimizer, "step", lambda params, grads, lr: applied.update(grads)
+    )
+
+    def targets(learner, batch, n_expert, config, rng):
+        return np.full(len(batch.states), 0.3), {}
+
+    draws = copy.deepcopy(rng)
+    stats = offpac_il.critic_step(learner, expert_rows, replay_rows, config, 1e-3, rng, targets)
+    batch = offpac_il.concatenated(expert_rows, replay_rows)
+    loss, grads, _ = offpac_il.critic_loss_and_grads(learner.critic, batch, np.full((6, 1), 0.3), 3)
+    penalty, penalty_grads = offpac_il.interpolate_penalty(
+        learner.critic, expert_rows, replay_rows, draws
+    )
+    assert stats["critic_penalty"] == pytest.approx(penalty, rel=1e-12)
+    assert stats["critic_loss"] == pytest.approx(loss + weight * penalty, rel=1e-12)
+    for name, grad in grads.items():
+        expected = grad + weight * penalty_grads.get(name, 0.0)
+        np.testing.assert_allclose(applied[name], expected, rtol=1e-12)
+    assert any(np.abs(penalty_grads[name]).max() > 0 for name in penalty_grads)
+
+    off = dataclasses.replace(config, critic_interpolate_penalty=0.0)
+    before = copy.deepcopy(rng).bit_generator.state
+    offpac_il.critic_step(learner, expert_rows, replay_rows, off, 1e-3, rng, targets)
+    assert rng.bit_generator.state == before
+
+
 def test_triplets_take_sample_and_concatenated():
     rng = np.random.default_rng(0)
     triplets = random_triplets(rng, 5, terminal_fraction=0.5)
