@@ -135,6 +135,9 @@ class Config(RunConfig):
     critic_interpolate_penalty: float = 0.0
     """Weight of DAC's penalty mean (||dx/d[s, a]|| - 1)^2 on QN's logit between expert
     and replay pairs (0: off; DAC: 10)."""
+    critic_action_contrast: float = 0.0
+    """Weight of the critic's logistic preference of a_E over pi(s_E, z) at the
+    demonstrated states, mean softplus(x(s_E, pi) - x(s_E, a_E)) (0: off)."""
 
 
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
@@ -217,6 +220,36 @@ def interpolate_penalty(
     return critic.input_gradient_penalty(cache, centre=1.0)
 
 
+def action_contrast(
+    learner: Learner, expert_batch: Triplets, rng: np.random.Generator
+) -> tuple[float, dict[str, np.ndarray]]:
+    """Not in the paper: at each demonstrated state, the critic is taught to prefer the
+    expert's action to one of the policy's, by the logistic loss of their logits,
+
+        C = mean_n softplus(x(s_n, pi(s_n, z_n)) - x(s_n, a_n)),   z_n ~ N(0, I),
+
+    the Bradley-Terry form of IQ-Learn's expert term Q(s_E, a_E) - V(s_E) (Garg et al.,
+    2021), whose V comes from the policy's actions at s_E. Objective (18) alone leaves
+    q near 1 for any action at the demonstrated states, so gradient (6) there has no
+    direction towards a_E; C gives it one. C moves only differences of x within a state,
+    so unlike replay rows at s_E (the record's expert-state negatives) it sets no target
+    for q itself. With d = x_pi - x_E: dC/dx_E = -sigmoid(d)/N, dC/dx_pi = sigmoid(d)/N,
+    backpropagated through QN. Returns (C, grads)."""
+    states, n = expert_batch.states, len(expert_batch.states)
+    noise = rng.standard_normal((n, learner.policy.noise_dim), np.float32)
+    policy_actions = learner.policy.act(states, noise)
+    both = (
+        np.concatenate([states, states]),
+        np.concatenate([expert_batch.actions, policy_actions]),
+    )
+    _, cache = learner.critic.forward(both)
+    d = cache.logits[n:] - cache.logits[:n]  # (N, 1): x(s, pi) - x(s, a_E)
+    weight = nets.sigmoid(d) / n
+    d_x = np.concatenate([-weight, weight])
+    _, grads = learner.critic.backward(d_x, cache, through_head=False, input_grads=False)
+    return float(nets.softplus(d).mean()), grads
+
+
 def critic_step(
     learner: Learner,
     expert_batch: Triplets,
@@ -241,6 +274,13 @@ def critic_step(
         for name, grad in penalty_grads.items():
             grads[name] += weight * grad
         stats = stats | {"critic_penalty": penalty}
+    if config.critic_action_contrast > 0:
+        weight = config.critic_action_contrast
+        contrast, contrast_grads = action_contrast(learner, expert_batch, rng)
+        loss += weight * contrast
+        for name, grad in contrast_grads.items():
+            grads[name] += weight * grad
+        stats = stats | {"critic_contrast": contrast}
     learner.critic_optimizer.step(learner.critic.params, grads, lr)
     nets.soft_update(learner.target_critic, learner.critic, config.tau)
     q = cache.output[:, 0]  # q_nu(s, a): the expert rows, then the replay rows
@@ -669,7 +709,7 @@ def check_config(config: Config) -> None:
     at_least_one = ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples")
     at_least_one += ("target_samples", "eval_every")
     non_negative = ("checkpoint_every", "log_every", "exploration_noise")
-    non_negative += ("critic_interpolate_penalty",)
+    non_negative += ("critic_interpolate_penalty", "critic_action_contrast")
     harness.check_numbers(
         config,
         {name: (1, math.inf, "[)") for name in at_least_one}

@@ -20,7 +20,7 @@ failure off (none of these is a setting of offpac_il.py):
 - std-floor: the state standardisation's std is raised to at least 0.3 x its median.
 
     python -m lab.first_updates --env Ant-v4 --interactions 3000 [--start bc-start]
-        [--sampling dense] [--critic-interpolate-penalty 10]
+        [--sampling dense] [--critic-interpolate-penalty 10] [--critic-action-contrast 1]
 """
 
 from __future__ import annotations
@@ -163,6 +163,7 @@ def main(argv=None) -> int:
     parser.add_argument("--gamma", type=float, default=offpac_il.Config.gamma)
     parser.add_argument("--sampling", default=offpac_il.Config.sampling)
     parser.add_argument("--critic-interpolate-penalty", type=float, default=0.0)
+    parser.add_argument("--critic-action-contrast", type=float, default=0.0)
     args = parser.parse_args(argv)
     config = offpac_il.Config(
         env=args.env,
@@ -175,6 +176,7 @@ def main(argv=None) -> int:
         gamma=args.gamma,
         sampling=args.sampling,
         critic_interpolate_penalty=args.critic_interpolate_penalty,
+        critic_action_contrast=args.critic_action_contrast,
     )
 
     def body() -> None:

@@ -298,11 +298,73 @@ def test_interpolate_penalty_matches_finite_differences(seed, n):
             assert np.abs(numeric).max() < 1e-8, name
 
 
-def test_critic_step_adds_the_weighted_penalty(monkeypatch):
-    """With --critic-interpolate-penalty w the step's gradient is (18)'s plus w times the
-    penalty's, on the points drawn after the targets; off, the step draws nothing more."""
+@given(seed=st.integers(0, 2**16), n=st.integers(1, 4))
+def test_action_contrast_matches_finite_differences(seed, n):
+    """The critic's logistic preference of a_E over pi(s_E, z): its value written out,
+    and its gradient in every weight against finite differences (each evaluation draws
+    the same noise, so the same policy actions)."""
+    learner, _, rng = small_learner(seed)
+    expert_rows = random_triplets(rng, n)
+
+    def contrast_and_grads():
+        return offpac_il.action_contrast(learner, expert_rows, np.random.default_rng(seed))
+
+    shape = (n, learner.policy.noise_dim)
+    noise = np.random.default_rng(seed).standard_normal(shape, np.float32)
+    policy_actions = learner.policy.act(expert_rows.states, noise)
+    _, at_expert = learner.critic.forward((expert_rows.states, expert_rows.actions))
+    _, at_policy = learner.critic.forward((expert_rows.states, policy_actions))
+    assume(away_from_kinks(at_expert, at_policy))
+    contrast, grads = contrast_and_grads()
+    d = at_policy.logits - at_expert.logits
+    assert contrast == pytest.approx(np.log1p(np.exp(d)).mean(), rel=1e-10)
+    assert set(grads) == set(learner.critic.params)
+    # Both rows of a state share its first-layer input, so where their units agree in
+    # slope the state block's gradients cancel to 0 exactly and the difference shows its
+    # rounding (~1e-12): elements below 1e-6 are compared absolutely (floor).
+    for name, param in learner.critic.params.items():
+        numeric = numerical_gradient(lambda: contrast_and_grads()[0], param, OBJECTIVE_EPS)
+        assert_gradient_close(
+            grads[name], numeric, OBJECTIVE_TOL, f"contrast d/d{name}", floor=1e-6
+        )
+
+
+def test_action_contrast_check_catches_a_wrong_gradient(monkeypatch):
+    """The check above fails if the policy's rows lose their part of the gradient."""
+    learner, _, rng = small_learner(2)
+    expert_rows = random_triplets(rng, 3)
+
+    def contrast():
+        return offpac_il.action_contrast(learner, expert_rows, np.random.default_rng(0))[0]
+
+    numeric = numerical_gradient(contrast, learner.critic.params["W0"], OBJECTIVE_EPS)
+    right = offpac_il.action_contrast(learner, expert_rows, np.random.default_rng(0))[1]
+    assert_gradient_close(right["W0"], numeric, OBJECTIVE_TOL, floor=1e-6)  # as above
+    concatenate = np.concatenate
+
+    def expert_half_only(arrays, *args, **kwargs):  # zeroes the policy rows' d_x
+        if len(arrays) == 2 and arrays[0].shape == (3, 1) and (arrays[0] < 0).all():
+            return concatenate([arrays[0], np.zeros_like(arrays[1])])
+        return concatenate(arrays, *args, **kwargs)
+
+    monkeypatch.setattr(offpac_il.np, "concatenate", expert_half_only)
+    wrong = offpac_il.action_contrast(learner, expert_rows, np.random.default_rng(0))[1]
+    with pytest.raises(AssertionError):
+        assert_gradient_close(wrong["W0"], numeric, OBJECTIVE_TOL, floor=1e-6)
+
+
+@pytest.mark.parametrize(
+    "setting, term",
+    [
+        ("critic_interpolate_penalty", offpac_il.interpolate_penalty),
+        ("critic_action_contrast", offpac_il.action_contrast),
+    ],
+)
+def test_critic_step_adds_each_weighted_term(monkeypatch, setting, term):
+    """With a term's weight w the step's gradient is (18)'s plus w times the term's, on
+    the points drawn after the targets; with w = 0 the step draws nothing more."""
     weight = 10.0
-    learner, config, rng = small_learner(7, critic_interpolate_penalty=weight)
+    learner, config, rng = small_learner(7, **{setting: weight})
     expert_rows, replay_rows = random_triplets(rng, 3), random_triplets(rng, 3)
     applied = {}
     monkeypatch.setattr(
@@ -315,18 +377,22 @@ def test_critic_step_adds_the_weighted_penalty(monkeypatch):
     draws = copy.deepcopy(rng)
     stats = offpac_il.critic_step(learner, expert_rows, replay_rows, config, 1e-3, rng, targets)
     batch = offpac_il.concatenated(expert_rows, replay_rows)
-    loss, grads, _ = offpac_il.critic_loss_and_grads(learner.critic, batch, np.full((6, 1), 0.3), 3)
-    penalty, penalty_grads = offpac_il.interpolate_penalty(
-        learner.critic, expert_rows, replay_rows, draws
-    )
-    assert stats["critic_penalty"] == pytest.approx(penalty, rel=1e-12)
-    assert stats["critic_loss"] == pytest.approx(loss + weight * penalty, rel=1e-12)
-    for name, grad in grads.items():
-        expected = grad + weight * penalty_grads.get(name, 0.0)
-        np.testing.assert_allclose(applied[name], expected, rtol=1e-12)
-    assert any(np.abs(penalty_grads[name]).max() > 0 for name in penalty_grads)
+    t = np.full((6, 1), 0.3)
+    loss, grads, _ = offpac_il.critic_loss_and_grads(learner.critic, batch, t, 3)
+    if term is offpac_il.interpolate_penalty:
+        value, term_grads = term(learner.critic, expert_rows, replay_rows, draws)
+        name = "critic_penalty"
+    else:
+        value, term_grads = term(learner, expert_rows, draws)
+        name = "critic_contrast"
+    assert stats[name] == pytest.approx(value, rel=1e-12)
+    assert stats["critic_loss"] == pytest.approx(loss + weight * value, rel=1e-12)
+    for key, grad in grads.items():
+        expected = grad + weight * term_grads.get(key, 0.0)
+        np.testing.assert_allclose(applied[key], expected, rtol=1e-12)
+    assert any(np.abs(g).max() > 0 for g in term_grads.values())
 
-    off = dataclasses.replace(config, critic_interpolate_penalty=0.0)
+    off = dataclasses.replace(config, **{setting: 0.0})
     before = copy.deepcopy(rng).bit_generator.state
     offpac_il.critic_step(learner, expert_rows, replay_rows, off, 1e-3, rng, targets)
     assert rng.bit_generator.state == before
