@@ -321,57 +321,6 @@ class MLP:
         g = np.concatenate(d_u, axis=1) if isinstance(d_u, tuple) else d_u  # (N, in): dx/du
         return 0.5 * float((g * g).sum()) / len(g)
 
-    def input_gradient_penalty(
-        self, cache: Cache, centre: float = 1.0
-    ) -> tuple[float, dict[str, np.ndarray]]:
-        """P = mean_n (||g_n|| - centre)^2 with g_n = dx_n/du_n, and dP/dparam, for a
-        single-logit network whose input blocks are all given row by row.
-
-        With centre 1 this is the penalty of WGAN-GP (Gulrajani et al., 2017) that DAC
-        (Kostrikov et al., 2019) puts, at weight 10, on its discriminator's logit at
-        points between expert and policy pairs; the critic step may use it
-        (--critic-interpolate-penalty).
-
-        Derivation. A leaky-ReLU network is piecewise linear: with the slopes
-        m_i = f'(h_i) held fixed (they change only at kinks, where P's gradient is
-        undefined), the input gradient is a product of matrices, computed in reverse:
-            d_{L-1} = m_{L-1} * w            (w = the last layer's single column)
-            d_i     = (d_{i+1} W_i^T) * m_i  (i = L-2 ... 1)
-            g       = d_1 W_0^T              (dx/du, one row per input row)
-        P depends on W_0 ... W_{L-1} alone (biases move only the slopes). With
-        G = dP/dg = 2 (||g_n|| - centre) g_n / (||g_n|| N) (0 where g_n = 0), its gradient
-        is this chain run forwards, each step the transpose of the one above:
-            dP/dW_0 = G^T d_1;   c_1 = G W_0
-            e_i = c_i * m_i;  dP/dW_i = e_i^T d_{i+1};  c_{i+1} = e_i W_i
-            dP/dw = sum_n c_{L-1} * m_{L-1}.
-        Returns (P, {"W0": ..., ..., "W_{L-1}": ...}); bias gradients are zero, left out.
-        """
-        if self.sizes[-1] != 1 or self.n_layers < 2:
-            raise ValueError("the input-gradient penalty needs one output and a hidden layer")
-        if any(len(block) != len(cache.logits) for block in cache.blocks):
-            raise ValueError("the input-gradient penalty needs every input block row by row")
-        last = self.n_layers - 1
-        slopes = [np.where(a > 0, 1.0, LEAKY_SLOPE).astype(self.dtype) for a in cache.activations]
-        deltas = [None] * self.n_layers  # deltas[i] = dx/dh_i for hidden layers 1..L-1
-        deltas[last] = slopes[last - 1] * self.params[f"W{last}"][:, 0]  # (N, h_{L-1})
-        for i in reversed(range(1, last)):
-            # (N, h_i+1) @ (h_i+1, h_i) -> (N, h_i)
-            deltas[i] = (deltas[i + 1] @ self.params[f"W{i}"].T) * slopes[i - 1]
-        g = deltas[1] @ self.params["W0"].T  # (N, h1) @ (h1, in) -> (N, in): dx/du
-        n = len(g)
-        norms = np.sqrt((g * g).sum(axis=1, keepdims=True))  # (N, 1)
-        penalty = float(((norms - centre) ** 2).sum()) / n
-        safe_norms = np.where(norms > 0, norms, 1.0)
-        G = np.where(norms > 0, 2.0 * (norms - centre) / (safe_norms * n), 0.0) * g  # dP/dg
-        grads = {"W0": G.T @ deltas[1]}  # (in, N) @ (N, h1) -> (in, h1)
-        c = G @ self.params["W0"]  # (N, in) @ (in, h1) -> (N, h1): dP/d deltas[1]
-        for i in range(1, last):
-            e = c * slopes[i - 1]  # dP/d(deltas[i+1] W_i^T), (N, h_i)
-            grads[f"W{i}"] = e.T @ deltas[i + 1]  # (h_i, N) @ (N, h_i+1) -> (h_i, h_i+1)
-            c = e @ self.params[f"W{i}"]  # (N, h_i) @ (h_i, h_i+1) -> (N, h_i+1)
-        grads[f"W{last}"] = (c * slopes[last - 1]).sum(axis=0)[:, None]  # (h_{L-1}, 1)
-        return penalty, grads
-
     # -- persistence --------------------------------------------------------------------
 
     def state(self, prefix: str) -> dict[str, np.ndarray]:

@@ -88,6 +88,7 @@ class Config(RunConfig):
         "state_clip": (0.0, "44dc556"),
         "policy_entropy": (0.0, "519758d"),
         "expert_action_anchor": (0.0, "08a20b2"),
+        "critic_interpolate_penalty": (0.0, "157447b"),
     }
 
     total_steps: int = 300_000
@@ -132,9 +133,6 @@ class Config(RunConfig):
     """Std of Gaussian noise on executed training actions (paper: 0; HalfCheetah, Walker2d: 0.3)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
-    critic_interpolate_penalty: float = 0.0
-    """Weight of DAC's penalty mean (||dx/d[s, a]|| - 1)^2 on QN's logit between expert
-    and replay pairs (0: off; DAC: 10)."""
     critic_action_contrast: float = 0.0
     """Weight of the critic's logistic preference of a_E over pi(s_E, z) at the
     demonstrated states, mean softplus(x(s_E, pi) - x(s_E, a_E)) (0: off)."""
@@ -204,22 +202,6 @@ def concatenated(expert_batch: Triplets, replay_batch: Triplets) -> Triplets:
     )
 
 
-def interpolate_penalty(
-    critic: nets.MLP, expert_batch: Triplets, replay_batch: Triplets, rng: np.random.Generator
-) -> tuple[float, dict[str, np.ndarray]]:
-    """Not in the paper: DAC's (Kostrikov et al., 2019) smooth-critic term, the WGAN-GP
-    penalty mean (||dx/du|| - 1)^2 on QN's logit x at u = e u_B + (1 - e) u_E, each row's
-    e ~ U(0, 1) pairing the i-th replay pair u_B = [s, a] with the i-th expert pair u_E.
-    It bounds how steeply x, and so log q, can change between the demonstrated pairs and
-    the learner's, the slope that gradient (6) follows. Its gradient w.r.t. QN's weights is
-    derived in nets.MLP.input_gradient_penalty. Returns (penalty, grads)."""
-    e = rng.uniform(size=(len(expert_batch.states), 1)).astype(critic.dtype)
-    states = e * replay_batch.states + (1 - e) * expert_batch.states
-    actions = e * replay_batch.actions + (1 - e) * expert_batch.actions
-    _, cache = critic.forward((states, actions))
-    return critic.input_gradient_penalty(cache, centre=1.0)
-
-
 def action_contrast(
     learner: Learner, expert_batch: Triplets, rng: np.random.Generator
 ) -> tuple[float, dict[str, np.ndarray]]:
@@ -265,15 +247,6 @@ def critic_step(
     batch = concatenated(expert_batch, replay_batch)  # (2n, ...)
     t, stats = targets(learner, batch, n, config, rng)
     loss, grads, cache = critic_loss_and_grads(learner.critic, batch, t[:, None], n)
-    if config.critic_interpolate_penalty > 0:
-        weight = config.critic_interpolate_penalty
-        penalty, penalty_grads = interpolate_penalty(
-            learner.critic, expert_batch, replay_batch, rng
-        )
-        loss += weight * penalty
-        for name, grad in penalty_grads.items():
-            grads[name] += weight * grad
-        stats = stats | {"critic_penalty": penalty}
     if config.critic_action_contrast > 0:
         weight = config.critic_action_contrast
         contrast, contrast_grads = action_contrast(learner, expert_batch, rng)
@@ -709,7 +682,7 @@ def check_config(config: Config) -> None:
     at_least_one = ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples")
     at_least_one += ("target_samples", "eval_every")
     non_negative = ("checkpoint_every", "log_every", "exploration_noise")
-    non_negative += ("critic_interpolate_penalty", "critic_action_contrast")
+    non_negative += ("critic_action_contrast",)
     harness.check_numbers(
         config,
         {name: (1, math.inf, "[)") for name in at_least_one}

@@ -272,33 +272,6 @@ def test_critic_step_is_objective_18_then_the_target_update(monkeypatch):
 
 
 @given(seed=st.integers(0, 2**16), n=st.integers(1, 4))
-def test_interpolate_penalty_matches_finite_differences(seed, n):
-    """DAC's penalty as the critic step computes it, on points between the i-th expert
-    and the i-th replay pair: its gradient in every weight against finite differences
-    of the penalty itself (each evaluation draws the same points)."""
-    learner, _, rng = small_learner(seed)
-    expert_rows, replay_rows = random_triplets(rng, n), random_triplets(rng, n)
-
-    def penalty_and_grads():
-        draws = np.random.default_rng(seed)
-        return offpac_il.interpolate_penalty(learner.critic, expert_rows, replay_rows, draws)
-
-    e = np.random.default_rng(seed).uniform(size=(n, 1))
-    states = e * replay_rows.states + (1 - e) * expert_rows.states
-    actions = e * replay_rows.actions + (1 - e) * expert_rows.actions
-    _, cache = learner.critic.forward((states, actions))
-    assume(away_from_kinks(cache))
-    penalty, grads = penalty_and_grads()
-    assert penalty == pytest.approx(learner.critic.input_gradient_penalty(cache, 1.0)[0])
-    for name, param in learner.critic.params.items():
-        numeric = numerical_gradient(lambda: penalty_and_grads()[0], param, OBJECTIVE_EPS)
-        if name in grads:
-            assert_gradient_close(grads[name], numeric, OBJECTIVE_TOL, f"penalty d/d{name}")
-        else:
-            assert np.abs(numeric).max() < 1e-8, name
-
-
-@given(seed=st.integers(0, 2**16), n=st.integers(1, 4))
 def test_action_contrast_matches_finite_differences(seed, n):
     """The critic's logistic preference of a_E over pi(s_E, z): its value written out,
     and its gradient in every weight against finite differences (each evaluation draws
@@ -353,18 +326,12 @@ def test_action_contrast_check_catches_a_wrong_gradient(monkeypatch):
         assert_gradient_close(wrong["W0"], numeric, OBJECTIVE_TOL, floor=1e-6)
 
 
-@pytest.mark.parametrize(
-    "setting, term",
-    [
-        ("critic_interpolate_penalty", offpac_il.interpolate_penalty),
-        ("critic_action_contrast", offpac_il.action_contrast),
-    ],
-)
-def test_critic_step_adds_each_weighted_term(monkeypatch, setting, term):
-    """With a term's weight w the step's gradient is (18)'s plus w times the term's, on
-    the points drawn after the targets; with w = 0 the step draws nothing more."""
+def test_critic_step_adds_the_weighted_contrast(monkeypatch):
+    """With --critic-action-contrast w the step's gradient is (18)'s plus w times the
+    contrast's, on the noise drawn after the targets; with w = 0 the step draws nothing
+    more."""
     weight = 10.0
-    learner, config, rng = small_learner(7, **{setting: weight})
+    learner, config, rng = small_learner(7, critic_action_contrast=weight)
     expert_rows, replay_rows = random_triplets(rng, 3), random_triplets(rng, 3)
     applied = {}
     monkeypatch.setattr(
@@ -379,20 +346,16 @@ def test_critic_step_adds_each_weighted_term(monkeypatch, setting, term):
     batch = offpac_il.concatenated(expert_rows, replay_rows)
     t = np.full((6, 1), 0.3)
     loss, grads, _ = offpac_il.critic_loss_and_grads(learner.critic, batch, t, 3)
-    if term is offpac_il.interpolate_penalty:
-        value, term_grads = term(learner.critic, expert_rows, replay_rows, draws)
-        name = "critic_penalty"
-    else:
-        value, term_grads = term(learner, expert_rows, draws)
-        name = "critic_contrast"
-    assert stats[name] == pytest.approx(value, rel=1e-12)
-    assert stats["critic_loss"] == pytest.approx(loss + weight * value, rel=1e-12)
+    contrast, contrast_grads = offpac_il.action_contrast(learner, expert_rows, draws)
+    assert stats["critic_contrast"] == pytest.approx(contrast, rel=1e-12)
+    assert stats["critic_loss"] == pytest.approx(loss + weight * contrast, rel=1e-12)
+    assert set(contrast_grads) == set(grads)
     for key, grad in grads.items():
-        expected = grad + weight * term_grads.get(key, 0.0)
+        expected = grad + weight * contrast_grads[key]
         np.testing.assert_allclose(applied[key], expected, rtol=1e-12)
-    assert any(np.abs(g).max() > 0 for g in term_grads.values())
+    assert any(np.abs(g).max() > 0 for g in contrast_grads.values())
 
-    off = dataclasses.replace(config, **{setting: 0.0})
+    off = dataclasses.replace(config, critic_action_contrast=0.0)
     before = copy.deepcopy(rng).bit_generator.state
     offpac_il.critic_step(learner, expert_rows, replay_rows, off, 1e-3, rng, targets)
     assert rng.bit_generator.state == before
