@@ -89,6 +89,7 @@ class Config(RunConfig):
         "policy_entropy": (0.0, "519758d"),
         "expert_action_anchor": (0.0, "08a20b2"),
         "critic_interpolate_penalty": (0.0, "157447b"),
+        "critic_action_contrast": (0.0, "d59b57f"),
     }
 
     total_steps: int = 300_000
@@ -133,9 +134,6 @@ class Config(RunConfig):
     """Std of Gaussian noise on executed training actions (paper: 0; HalfCheetah, Walker2d: 0.3)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
-    critic_action_contrast: float = 0.0
-    """Weight of the critic's logistic preference of a_E over pi(s_E, z) at the
-    demonstrated states, mean softplus(x(s_E, pi) - x(s_E, a_E)) (0: off)."""
 
 
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
@@ -202,36 +200,6 @@ def concatenated(expert_batch: Triplets, replay_batch: Triplets) -> Triplets:
     )
 
 
-def action_contrast(
-    learner: Learner, expert_batch: Triplets, rng: np.random.Generator
-) -> tuple[float, dict[str, np.ndarray]]:
-    """Not in the paper: at each demonstrated state, the critic is taught to prefer the
-    expert's action to one of the policy's, by the logistic loss of their logits,
-
-        C = mean_n softplus(x(s_n, pi(s_n, z_n)) - x(s_n, a_n)),   z_n ~ N(0, I),
-
-    the Bradley-Terry form of IQ-Learn's expert term Q(s_E, a_E) - V(s_E) (Garg et al.,
-    2021), whose V comes from the policy's actions at s_E. Objective (18) alone leaves
-    q near 1 for any action at the demonstrated states, so gradient (6) there has no
-    direction towards a_E; C gives it one. C moves only differences of x within a state,
-    so unlike replay rows at s_E (the record's expert-state negatives) it sets no target
-    for q itself. With d = x_pi - x_E: dC/dx_E = -sigmoid(d)/N, dC/dx_pi = sigmoid(d)/N,
-    backpropagated through QN. Returns (C, grads)."""
-    states, n = expert_batch.states, len(expert_batch.states)
-    noise = rng.standard_normal((n, learner.policy.noise_dim), np.float32)
-    policy_actions = learner.policy.act(states, noise)
-    both = (
-        np.concatenate([states, states]),
-        np.concatenate([expert_batch.actions, policy_actions]),
-    )
-    _, cache = learner.critic.forward(both)
-    d = cache.logits[n:] - cache.logits[:n]  # (N, 1): x(s, pi) - x(s, a_E)
-    weight = nets.sigmoid(d) / n
-    d_x = np.concatenate([-weight, weight])
-    _, grads = learner.critic.backward(d_x, cache, through_head=False, input_grads=False)
-    return float(nets.softplus(d).mean()), grads
-
-
 def critic_step(
     learner: Learner,
     expert_batch: Triplets,
@@ -247,13 +215,6 @@ def critic_step(
     batch = concatenated(expert_batch, replay_batch)  # (2n, ...)
     t, stats = targets(learner, batch, n, config, rng)
     loss, grads, cache = critic_loss_and_grads(learner.critic, batch, t[:, None], n)
-    if config.critic_action_contrast > 0:
-        weight = config.critic_action_contrast
-        contrast, contrast_grads = action_contrast(learner, expert_batch, rng)
-        loss += weight * contrast
-        for name, grad in contrast_grads.items():
-            grads[name] += weight * grad
-        stats = stats | {"critic_contrast": contrast}
     learner.critic_optimizer.step(learner.critic.params, grads, lr)
     nets.soft_update(learner.target_critic, learner.critic, config.tau)
     q = cache.output[:, 0]  # q_nu(s, a): the expert rows, then the replay rows
@@ -682,7 +643,6 @@ def check_config(config: Config) -> None:
     at_least_one = ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples")
     at_least_one += ("target_samples", "eval_every")
     non_negative = ("checkpoint_every", "log_every", "exploration_noise")
-    non_negative += ("critic_action_contrast",)
     harness.check_numbers(
         config,
         {name: (1, math.inf, "[)") for name in at_least_one}
