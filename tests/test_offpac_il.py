@@ -126,6 +126,74 @@ def test_critic_objective_check_catches_a_wrong_gradient():
         assert_gradient_close(2.0 * grads["W0"], numeric, OBJECTIVE_TOL)
 
 
+@given(seed=st.integers(0, 2**16), n=st.integers(1, 5))
+def test_log_td_loss_gradient_matches_finite_differences(seed, n):
+    """--critic-loss log-td: the loss written out (terminal rows, t = 0, take the floor),
+    and its gradient in every critic parameter against finite differences."""
+    learner, _, rng = small_learner(seed)
+    batch = random_triplets(rng, 2 * n)
+    t = rng.uniform(0.05, 1.0, (2 * n, 1))  # log t >= -3: the loss stays O(1), as (18)
+    t[n:] *= 0.5
+    t[0] = 0.0  # a terminal s' under zero continuation
+    floor = -3.0
+    assume(away_from_kinks(learner.critic.forward((batch.states, batch.actions))[1]))
+
+    def loss():
+        return offpac_il.log_td_loss_and_grads(learner.critic, batch, t, n, floor)[0]
+
+    q, _ = learner.critic.forward((batch.states, batch.actions))
+    y = np.maximum(np.log(np.maximum(t, 1e-300)), floor)  # below the floor: the floor
+    squared = (np.log(q) - y)[:, 0] ** 2
+    np.testing.assert_allclose(loss(), 0.5 * squared[:n].mean() + 0.5 * squared[n:].mean())
+
+    _, grads, _ = offpac_il.log_td_loss_and_grads(learner.critic, batch, t, n, floor)
+    assert set(grads) == set(learner.critic.params)
+    for name, param in learner.critic.params.items():
+        numeric = numerical_gradient(loss, param, OBJECTIVE_EPS)
+        assert_gradient_close(grads[name], numeric, OBJECTIVE_TOL, f"log-td d/d{name}")
+
+
+def test_log_td_check_catches_a_wrong_gradient(monkeypatch):
+    """The check above fails if the gradient forgets d log q / dx = sigmoid(-x)."""
+    learner, _, rng = small_learner(1)
+    batch = random_triplets(rng, 4)
+    t = rng.uniform(0.05, 1.0, (4, 1))
+
+    def loss():
+        return offpac_il.log_td_loss_and_grads(learner.critic, batch, t, 2, -3.0)[0]
+
+    numeric = numerical_gradient(loss, learner.critic.params["W0"], OBJECTIVE_EPS)
+    right = offpac_il.log_td_loss_and_grads(learner.critic, batch, t, 2, -3.0)[1]
+    assert_gradient_close(right["W0"], numeric, OBJECTIVE_TOL)
+    monkeypatch.setattr(nets, "log_sigmoid_grad", np.ones_like)
+    wrong = offpac_il.log_td_loss_and_grads(learner.critic, batch, t, 2, -3.0)[1]
+    with pytest.raises(AssertionError):
+        assert_gradient_close(wrong["W0"], numeric, OBJECTIVE_TOL)
+
+
+def test_critic_step_uses_the_chosen_loss(monkeypatch):
+    """--critic-loss log-td: the step's gradient is log_td_loss_and_grads' on the same
+    targets, with the floor twice the log of the learner's 2^(-1/(1-gamma))."""
+    learner, config, rng = small_learner(8, critic_loss="log-td", gamma=0.9)
+    expert_rows, replay_rows = random_triplets(rng, 3), random_triplets(rng, 3)
+    applied = {}
+    monkeypatch.setattr(
+        learner.critic_optimizer, "step", lambda params, grads, lr: applied.update(grads)
+    )
+
+    def targets(learner, batch, n_expert, config, rng):
+        return np.array([0.0, 0.4, 0.5, 0.2, 0.1, 0.3]), {}
+
+    stats = offpac_il.critic_step(learner, expert_rows, replay_rows, config, 1e-3, rng, targets)
+    batch = offpac_il.concatenated(expert_rows, replay_rows)
+    t = targets(None, None, None, None, None)[0][:, None]
+    floor = 2 * np.log(0.5) / (1 - 0.9)
+    loss, grads, _ = offpac_il.log_td_loss_and_grads(learner.critic, batch, t, 3, floor)
+    assert stats["critic_loss"] == pytest.approx(loss, rel=1e-12)
+    for name, grad in grads.items():
+        np.testing.assert_allclose(applied[name], grad, rtol=1e-12)
+
+
 # ---------------------------------------------------------------------------------------
 # Gradient (6): the policy objective, through the critic's action Jacobian and the tanh.
 # ---------------------------------------------------------------------------------------
