@@ -80,7 +80,7 @@ class Config(RunConfig):
     program: ClassVar[str] = "python offpac_il.py"  # the command that resumes its runs
     # Settings measured not to help, which left the code: name -> (the value that meant
     # "off", the last commit that had it). A run made with one on cannot be resumed here.
-    removed_settings: ClassVar[dict[str, tuple[float, str]]] = {
+    removed_settings: ClassVar[dict[str, tuple[float | str, str]]] = {
         "critic_reg": (0.0, ""),
         "critic_grad_penalty": (0.0, ""),
         "critic_input_noise": (0.0, ""),
@@ -90,6 +90,7 @@ class Config(RunConfig):
         "expert_action_anchor": (0.0, "08a20b2"),
         "critic_interpolate_penalty": (0.0, "157447b"),
         "critic_action_contrast": (0.0, "d59b57f"),
+        "critic_loss": ("js", "f454a88"),
     }
 
     total_steps: int = 300_000
@@ -134,8 +135,6 @@ class Config(RunConfig):
     """Std of Gaussian noise on executed training actions (paper: 0; HalfCheetah, Walker2d: 0.3)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
-    critic_loss: str = "js"
-    """The critic's loss: js (objective 18) or log-td (a squared TD error in Q = log q)."""
 
 
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
@@ -195,31 +194,6 @@ def critic_loss_and_grads(critic: nets.MLP, batch: Triplets, t: np.ndarray, n_ex
     return float(loss), grads, cache
 
 
-def log_td_loss_and_grads(
-    critic: nets.MLP, batch: Triplets, t: np.ndarray, n_expert: int, log_floor: float
-):
-    """Not in the paper: objective (18)'s fixed point q = t written as a TD error in the
-    log domain, Q = log q (Eq. 10) matched to y = log t,
-
-        L = 1/2 mean_E (Q - y)^2 + 1/2 mean_B (Q - y)^2,   y = max(log t, log_floor).
-
-    Its gradient in the logit x is dL/dx = (Q - y) sigmoid(-x) / n (one sum / n is both
-    means, as in 18), which does not vanish as q -> 0, where (18)'s 1/2 p(1 - p)(logit p
-    - logit m) does: with gamma near 1 the replay rows' q falls towards 2^(-1/(1-gamma))
-    (mechanism 2 of the record's candidates). The floor stands in for log 0 at a terminal
-    s' (zero continuation). Returns (loss, grads, critic cache), as critic_loss_and_grads.
-    """
-    _, cache = critic.forward((batch.states, batch.actions))
-    x = cache.logits  # (2n, 1)
-    with np.errstate(divide="ignore"):  # log 0 = -inf at terminal rows, then floored
-        y = np.maximum(np.log(t), log_floor)
-    error = nets.log_sigmoid(x) - y  # Q - y
-    loss = 0.5 * float((error**2).sum()) / n_expert
-    d_x = error * nets.log_sigmoid_grad(x) / n_expert  # d log sigmoid(x)/dx = sigmoid(-x)
-    _, grads = critic.backward(d_x, cache, through_head=False, input_grads=False)
-    return loss, grads, cache
-
-
 def concatenated(expert_batch: Triplets, replay_batch: Triplets) -> Triplets:
     fields = (f.name for f in dataclasses.fields(Triplets))
     return Triplets(
@@ -241,13 +215,7 @@ def critic_step(
     n = len(expert_batch.states)
     batch = concatenated(expert_batch, replay_batch)  # (2n, ...)
     t, stats = targets(learner, batch, n, config, rng)
-    if config.critic_loss == "log-td":
-        # Twice the log of the learner's floor 2^(-1/(1-gamma)): a fall stays worse than
-        # staying a learner for ever, as zero continuation makes it under (18).
-        log_floor = 2.0 * math.log(0.5) / (1.0 - config.gamma)
-        loss, grads, cache = log_td_loss_and_grads(learner.critic, batch, t[:, None], n, log_floor)
-    else:
-        loss, grads, cache = critic_loss_and_grads(learner.critic, batch, t[:, None], n)
+    loss, grads, cache = critic_loss_and_grads(learner.critic, batch, t[:, None], n)
     learner.critic_optimizer.step(learner.critic.params, grads, lr)
     nets.soft_update(learner.target_critic, learner.critic, config.tau)
     q = cache.output[:, 0]  # q_nu(s, a): the expert rows, then the replay rows
@@ -672,14 +640,7 @@ def snapshot_path(run_dir: Path, interactions: int) -> Path:
 
 def check_config(config: Config) -> None:
     """Refuse settings that cannot work, with one clear line, before anything is written."""
-    harness.check_choices(
-        config,
-        {
-            "termination": TERMINATIONS,
-            "sampling": expert.SAMPLING_MODES,
-            "critic_loss": CRITIC_LOSSES,
-        },
-    )
+    harness.check_choices(config, {"termination": TERMINATIONS, "sampling": expert.SAMPLING_MODES})
     at_least_one = ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples")
     at_least_one += ("target_samples", "eval_every")
     non_negative = ("checkpoint_every", "log_every", "exploration_noise")
@@ -699,7 +660,6 @@ def check_config(config: Config) -> None:
 
 
 TERMINATIONS = ("bootstrap", "absorbing", "zero")
-CRITIC_LOSSES = ("js", "log-td")
 # 100 000 Hopper episodes are up to 10^8 steps, days of one evaluation; more is a typo.
 MAX_EVAL_EPISODES = 100_000
 
