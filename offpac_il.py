@@ -91,6 +91,7 @@ class Config(RunConfig):
         "critic_interpolate_penalty": (0.0, "157447b"),
         "critic_action_contrast": (0.0, "d59b57f"),
         "critic_loss": ("js", "f454a88"),
+        "critic_spectral_bound": (0.0, "4542e27"),
     }
 
     total_steps: int = 300_000
@@ -135,9 +136,6 @@ class Config(RunConfig):
     """Std of Gaussian noise on executed training actions (paper: 0; HalfCheetah, Walker2d: 0.3)."""
     policy_average: float = 1e-4
     """Rate of the Polyak average of PN's weights, the policy handed over (0: none)."""
-    critic_spectral_bound: float = 0.0
-    """Bound c on the spectral norm of each of QN's weight matrices, kept by projection
-    after every critic step (0: off; SN-GAN's value is 1)."""
 
 
 # Appendix B's values of the settings whose defaults deviate from it (--paper).
@@ -204,55 +202,6 @@ def concatenated(expert_batch: Triplets, replay_batch: Triplets) -> Triplets:
     )
 
 
-class SpectralBound:
-    """Not in the paper (--critic-spectral-bound c): the Lipschitz-critic remedy of
-    SN-GAN (Miyato et al., 2018), as a projection (Gouk et al., 2021). After each
-    critic step every weight matrix W of QN becomes W min(1, c / sigma(W)), sigma the
-    largest singular value. With leaky ReLU 1-Lipschitz, the logit x then changes by at
-    most c^L ||d[s, a]|| over L layers, so q cannot jump from the replay floor to 1
-    between nearby pairs, and gradient (6) sees a bounded slope. The target critic
-    tracks convex combinations of bounded matrices, so it is bounded too. sigma comes
-    from one power iteration per step, warm-started from the last step's singular
-    vector as SN-GAN does; the vectors are checkpointed so a resume is exact. No
-    gradient changes: the projection acts on the weights after the RMSProp step."""
-
-    def __init__(self, critic: nets.MLP, bound: float, warm_up: int = 100):
-        self.bound = bound
-        self.left = {
-            f"W{i}": np.full(critic.sizes[i], 1 / math.sqrt(critic.sizes[i]), critic.dtype)
-            for i in range(critic.n_layers)
-        }  # (in,) per layer: the estimate of W's top left singular vector
-        for _ in range(warm_up):  # the fresh critic's vectors, before its first projection
-            for name in self.left:
-                self._power_step(name, critic.params[name])
-
-    def _power_step(self, name: str, W: np.ndarray) -> float:
-        v = self.left[name] @ W  # (out,)
-        v /= np.linalg.norm(v) + 1e-12
-        u = W @ v  # (in,): ||W v|| -> sigma as v -> the top right singular vector
-        sigma = float(np.linalg.norm(u))
-        self.left[name] = u / (sigma + 1e-12)
-        return sigma
-
-    def project(self, critic: nets.MLP) -> float:
-        """Bound every W of `critic` in place; returns the largest sigma before it."""
-        largest = 0.0
-        for name in self.left:
-            W = critic.params[name]  # (in, out)
-            sigma = self._power_step(name, W)
-            largest = max(largest, sigma)
-            if sigma > self.bound:
-                W *= self.bound / sigma
-        return largest
-
-    def state(self, prefix: str) -> dict[str, np.ndarray]:
-        return {f"{prefix}.{k}": v for k, v in self.left.items()}
-
-    def load_state(self, arrays, prefix: str) -> None:
-        for k in self.left:
-            self.left[k] = np.array(arrays[f"{prefix}.{k}"])
-
-
 def critic_step(
     learner: Learner,
     expert_batch: Triplets,
@@ -269,10 +218,6 @@ def critic_step(
     t, stats = targets(learner, batch, n, config, rng)
     loss, grads, cache = critic_loss_and_grads(learner.critic, batch, t[:, None], n)
     learner.critic_optimizer.step(learner.critic.params, grads, lr)
-    if "spectral_bound" in learner.extra_state:
-        stats = stats | {
-            "critic_sigma": learner.extra_state["spectral_bound"].project(learner.critic)
-        }
     nets.soft_update(learner.target_critic, learner.critic, config.tau)
     q = cache.output[:, 0]  # q_nu(s, a): the expert rows, then the replay rows
     q_expert, q_replay = float(q[:n].mean()), float(q[n:].mean())
@@ -464,11 +409,7 @@ class Learner:
         critic = nets.MLP.create(sizes, "sigmoid", rng, dtype)
         optimizers = [nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps) for _ in range(2)]
         average_policy = policy.copy() if config.policy_average > 0 else None
-        extra_state = {}
-        if config.critic_spectral_bound > 0:
-            extra_state["spectral_bound"] = SpectralBound(critic, config.critic_spectral_bound)
-            extra_state["spectral_bound"].project(critic)
-        return cls(policy, critic, critic.copy(), *optimizers, average_policy, extra_state)
+        return cls(policy, critic, critic.copy(), *optimizers, average_policy)
 
     def averaged(self) -> Learner:
         """This learner acting with the averaged PN."""
@@ -703,7 +644,7 @@ def check_config(config: Config) -> None:
     harness.check_choices(config, {"termination": TERMINATIONS, "sampling": expert.SAMPLING_MODES})
     at_least_one = ("total_steps", "trajectories", "batch_size", "replay_size", "noise_samples")
     at_least_one += ("target_samples", "eval_every")
-    non_negative = ("checkpoint_every", "log_every", "exploration_noise", "critic_spectral_bound")
+    non_negative = ("checkpoint_every", "log_every", "exploration_noise")
     harness.check_numbers(
         config,
         {name: (1, math.inf, "[)") for name in at_least_one}

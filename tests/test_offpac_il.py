@@ -271,49 +271,6 @@ def test_critic_step_is_objective_18_then_the_target_update(monkeypatch):
     assert stats["my_stat"] == 1.5
 
 
-def largest_singular_values(critic: nets.MLP) -> list[float]:
-    return [float(np.linalg.norm(critic.params[f"W{i}"], 2)) for i in range(critic.n_layers)]
-
-
-@pytest.mark.parametrize("bound", [0.3, 1.0])
-def test_spectral_bound_holds_through_critic_steps(bound):
-    """--critic-spectral-bound c: the fresh critic and the critic after every step at
-    the default rate have each weight matrix's largest singular value (exact, by SVD)
-    at most c, to the one power iteration per step; the same critic unprojected
-    exceeds c."""
-    learner, config, rng = small_learner(3, critic_spectral_bound=bound)
-    assert max(largest_singular_values(learner.critic)) <= bound * (1 + 1e-6)
-    free, _, free_rng = small_learner(3)
-    for _ in range(30):
-        rows = random_triplets(rng, 8), random_triplets(rng, 8)
-        stats = offpac_il.critic_step(learner, *rows, config, config.critic_lr, rng)
-        offpac_il.critic_step(free, *rows, config, config.critic_lr, free_rng)
-        assert max(largest_singular_values(learner.critic)) <= bound * 1.01
-        assert stats["critic_sigma"] == pytest.approx(bound, rel=0.05)
-    assert max(largest_singular_values(free.critic)) > 1.5 * bound
-
-
-def test_spectral_bound_estimate_is_the_largest_singular_value_and_is_checkpointed():
-    """The power iteration converges to the SVD's sigma; a matrix already within the
-    bound is left alone; the singular vectors travel with the learner's state."""
-    learner, _, _ = small_learner(5, critic_spectral_bound=1e6)
-    before = copy.deepcopy(learner.critic.params)
-    bound = learner.extra_state["spectral_bound"]
-    sigma = bound.project(learner.critic)
-    assert sigma == pytest.approx(max(largest_singular_values(learner.critic)), rel=1e-6)
-    for name, value in before.items():
-        np.testing.assert_array_equal(learner.critic.params[name], value)
-    state = learner.state()
-    assert {f"spectral_bound.W{i}" for i in range(learner.critic.n_layers)} <= set(state)
-    other, _, _ = small_learner(6, critic_spectral_bound=1e6)
-    other.load_state(state)
-    for name, vector in bound.left.items():
-        np.testing.assert_array_equal(other.extra_state["spectral_bound"].left[name], vector)
-    plain, _, _ = small_learner(5)
-    assert "spectral_bound" not in plain.extra_state
-    assert not any(k.startswith("spectral_bound") for k in plain.state())
-
-
 def test_triplets_take_sample_and_concatenated():
     rng = np.random.default_rng(0)
     triplets = random_triplets(rng, 5, terminal_fraction=0.5)
