@@ -193,13 +193,14 @@ class CommandLineParser(argparse.ArgumentParser):
         sys.exit(2)
 
 
-def config_from_command_line(argv, config_class, description, paper: dict, may_change):
+def config_from_command_line(argv, config_class, description, paper: dict, may_change, prog=None):
     """(config, resume) from a trainer's command line: one flag per `config_class` field,
     `--paper` (the `paper` values become the defaults; flags given still win) and
     `--resume RUN_DIR` (the saved settings, with only the flags in `may_change` given
-    anew; any other flag given must agree with the saved run)."""
+    anew; any other flag given must agree with the saved run). prog: the command as typed
+    (`python -m lab.peers sqil`), for the usage line and errors; default: the script."""
     parser = CommandLineParser(
-        description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter
+        prog=prog, description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter
     )
     add_dataclass_flags(parser, config_class)
     if paper:

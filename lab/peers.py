@@ -558,7 +558,12 @@ def parse(argv: list[str]) -> tuple[PeerConfig, str, bool]:
     if method not in METHODS:
         raise UserError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     config, resume = harness.config_from_command_line(
-        argv, METHODS[method].config_class, METHODS[method].summary, {}, RESUMABLE_CHANGES
+        argv,
+        METHODS[method].config_class,
+        METHODS[method].summary,
+        {},
+        RESUMABLE_CHANGES,
+        prog=f"python -m lab.peers {method}",
     )
     if resume:
         saved = harness.read_config(config.run_dir)

@@ -789,7 +789,9 @@ RESUMABLE_CHANGES = ("steps", "out", "checkpoint_every", "log_every")
 
 def parse(argv: list[str]) -> tuple[SACConfig, bool]:
     description = __doc__.splitlines()[0]
-    return harness.config_from_command_line(argv, SACConfig, description, {}, RESUMABLE_CHANGES)
+    return harness.config_from_command_line(
+        argv, SACConfig, description, {}, RESUMABLE_CHANGES, prog="python -m lab.sac"
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
