@@ -20,7 +20,7 @@ failure off (none of these is a setting of offpac_il.py):
 - std-floor: the state standardisation's std is raised to at least 0.3 x its median.
 
     python -m lab.first_updates --env Ant-v4 --interactions 3000 [--start bc-start]
-        [--sampling dense]
+        [--sampling dense] [--batch-size 256]
 """
 
 from __future__ import annotations
@@ -162,6 +162,7 @@ def main(argv=None) -> int:
     parser.add_argument("--exploration-noise", type=float, default=0.0)
     parser.add_argument("--gamma", type=float, default=offpac_il.Config.gamma)
     parser.add_argument("--sampling", default=offpac_il.Config.sampling)
+    parser.add_argument("--batch-size", type=count, default=offpac_il.Config.batch_size)
     args = parser.parse_args(argv)
     config = offpac_il.Config(
         env=args.env,
@@ -173,6 +174,7 @@ def main(argv=None) -> int:
         exploration_noise=args.exploration_noise,
         gamma=args.gamma,
         sampling=args.sampling,
+        batch_size=args.batch_size,
     )
 
     def body() -> None:
