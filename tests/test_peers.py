@@ -306,7 +306,9 @@ def test_run_resumes_exactly(tmp_path, hopper_demos, monkeypatch, method):
 
 def test_command_line_help_resume_and_refusals(tmp_path, hopper_demos):
     assert "sqil" in run_module("lab.peers", "--help").stdout
-    assert "--learning-starts" in run_module("lab.peers", "sqil", "--help").stdout
+    method_help = run_module("lab.peers", "sqil", "--help").stdout
+    assert "--learning-starts" in method_help
+    assert method_help.startswith("usage: python -m lab.peers sqil ")  # the command as typed
     run_dir = tmp_path / "run"
     common = [*TINY, "--demos", hopper_demos, "--run-dir", run_dir]
     run_module("lab.peers", "sqil", *common, "--total-steps", "300")
@@ -318,6 +320,7 @@ def test_command_line_help_resume_and_refusals(tmp_path, hopper_demos):
         (["sqil", *common], "already holds a run"),
         (["sqil", *TINY, "--batch-size", "1", "--run-dir", tmp_path / "b"], "--batch-size"),
         (["sqil", "--env", "CartPole-v1", "--run-dir", tmp_path / "c"], "CartPole-v1"),
+        (["iq-learn", "--bogus"], "(see python -m lab.peers iq-learn --help)"),
     ]:
         assert_one_line_error(run_module("lab.peers", *args, check=False), fragment)
     # A run is resumed by the method that made it.

@@ -583,7 +583,11 @@ def test_command_line_trains_resumes_and_refuses_mixed_flags(tmp_path, capsys):
     for refused, message in [
         (["--resume", str(run_dir), "--lr", "1e-3"], "may change only: --steps"),
         (train_command(run_dir, *TINY_FLAGS), "already holds a run"),
-        (train_command(tmp_path / "new", "--directions", "8"), "--directions"),  # an ARS flag
+        # an ARS flag; the line names the command as typed
+        (
+            train_command(tmp_path / "new", "--directions", "8"),
+            "--directions 8 (see python -m lab.sac",
+        ),
         (train_command(tmp_path / "new", "--gamma", "nan"), "--gamma"),
         (["--resume", str(tmp_path / "absent")], "holds no run"),
         (["--run-dir", str(tmp_path / "new")], "--env is required"),
