@@ -17,13 +17,7 @@ failure off (none of these is a setting of offpac_il.py):
   does, so the first steps are lr-sized instead of up to 14 lr;
 - bc-start: PN is first fitted to the demonstrations by squared error (`--bc-steps`
   RMSProp steps, rate 1e-3, 64 triplets each), then the run starts from it;
-- std-floor: the state standardisation's std is raised to at least 0.3 x its median;
-- adam: both optimisers are Adam (lab/optim.py, PyTorch's defaults) at the learner's
-  rates, as SQIL's and IQ-Learn's SAC is trained;
-- twin-critics: a second critic, drawn from its own seed, is trained beside QN on
-  objective (18) with the same targets, t = E_z[min(q1', q2')^gamma] (17) through both
-  target critics (TD3's clipped double Q, Fujimoto et al., 2018); gradient (6) uses QN
-  alone, as TD3's actor does, so no gradient is new.
+- std-floor: the state standardisation's std is raised to at least 0.3 x its median.
 
     python -m lab.first_updates --env Ant-v4 --interactions 3000 [--start bc-start]
         [--sampling dense] [--batch-size 256]
@@ -40,9 +34,8 @@ import expert
 import harness
 import nets
 import offpac_il
-from lab import optim
 
-STARTS = ("defaults", "bias-corrected", "bc-start", "std-floor", "adam", "twin-critics")
+STARTS = ("defaults", "bias-corrected", "bc-start", "std-floor")
 
 
 @dataclasses.dataclass
@@ -60,63 +53,6 @@ class BiasCorrectedRMSProp(nets.RMSProp):
         root_c = np.sqrt(1.0 - self.decay**self.steps)
         plain = nets.RMSProp(self.decay, self.eps * root_c, self.mean_square)
         plain.step(params, grads, lr * root_c)
-
-
-@dataclasses.dataclass
-class MinOfCritics:
-    """Two target critics read as one: the logit min(x1, x2), so q = min(q1, q2) (the
-    sigmoid is increasing). It stands in for QN' in offpac_il.critic_targets."""
-
-    first: nets.MLP
-    second: nets.MLP
-
-    def forward(self, inputs):
-        (_, first), (_, second) = self.first.forward(inputs), self.second.forward(inputs)
-        logits = np.minimum(first.logits, second.logits)
-        return nets.sigmoid(logits), dataclasses.replace(first, logits=logits)
-
-
-@dataclasses.dataclass
-class SecondCritic:
-    """The twin-critics start's second QN, its target and its RMSProp."""
-
-    critic: nets.MLP
-    target: nets.MLP
-    optimizer: nets.RMSProp
-
-
-def add_second_critic(learner, config: offpac_il.Config, seed: int = 11) -> None:
-    rng = np.random.default_rng([config.seed, seed])
-    critic = nets.MLP.create(learner.critic.sizes, "sigmoid", rng, learner.critic.dtype)
-    optimizer = nets.RMSProp(config.rmsprop_decay, config.rmsprop_eps)
-    learner.extra_state["second_critic"] = SecondCritic(critic, critic.copy(), optimizer)
-
-
-def twin_critic_step(learner, expert_batch, replay_batch, config, lr, rng) -> dict[str, float]:
-    """offpac_il.critic_step on QN and on the second critic, both matched to one t drawn
-    through min(q1', q2'); each target critic then follows its own critic."""
-    second = learner.extra_state["second_critic"]
-    n = len(expert_batch.states)
-    batch = offpac_il.concatenated(expert_batch, replay_batch)
-    pair = MinOfCritics(learner.target_critic, second.target)
-    t, _ = offpac_il.critic_targets(
-        dataclasses.replace(learner, target_critic=pair), batch, n, config, rng
-    )
-
-    def shared_targets(*_):
-        return t, {}
-
-    stats = offpac_il.critic_step(
-        learner, expert_batch, replay_batch, config, lr, rng, targets=shared_targets
-    )
-    twin = dataclasses.replace(
-        learner,
-        critic=second.critic,
-        target_critic=second.target,
-        critic_optimizer=second.optimizer,
-    )
-    offpac_il.critic_step(twin, expert_batch, replay_batch, config, lr, rng, targets=shared_targets)
-    return stats
 
 
 def cloning_loss_and_grads(policy, states, noise, actions):
@@ -180,12 +116,6 @@ def first_updates(
         decay, eps = config.rmsprop_decay, config.rmsprop_eps
         learner.policy_optimizer = BiasCorrectedRMSProp(decay, eps)
         learner.critic_optimizer = BiasCorrectedRMSProp(decay, eps)
-    if start == "adam":
-        learner.policy_optimizer, learner.critic_optimizer = optim.Adam(), optim.Adam()
-    variant = offpac_il.OURS
-    if start == "twin-critics":
-        add_second_critic(learner, config)
-        variant = offpac_il.Variant(critic_step=twin_critic_step)
     if start == "bc-start":
         fit_to_demonstrations(learner.policy, expert_buffer, bc_steps, np.random.default_rng(7))
         if learner.average_policy is not None:
@@ -197,7 +127,7 @@ def first_updates(
             env, learner, spaces, rng, int(rng.integers(2**31)), replay, config.exploration_noise
         )
         for _ in range(length):
-            stats = offpac_il.update(learner, expert_buffer, replay, config, done, rng, variant)
+            stats = offpac_il.update(learner, expert_buffer, replay, config, done, rng)
         done += length
         if done >= next_row or done >= interactions:  # and always the last
             row = {"interactions": done, "return": episode_return}

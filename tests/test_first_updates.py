@@ -4,21 +4,13 @@ shown to catch a wrong one), and one short probe of each start on Hopper-v4."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 from gradcheck import assert_gradient_close, numerical_gradient
 from helpers import assert_one_line_error, run_module
 from hypothesis import assume, given
 from hypothesis import strategies as st
-from test_offpac_il import (
-    OBJECTIVE_EPS,
-    OBJECTIVE_TOL,
-    away_from_kinks,
-    random_triplets,
-    small_learner,
-)
+from test_offpac_il import OBJECTIVE_EPS, OBJECTIVE_TOL, away_from_kinks, small_learner
 
 import expert
 import nets
@@ -97,49 +89,6 @@ def test_fit_to_demonstrations_brings_the_policy_to_the_demonstrated_actions():
     before = error()
     first_updates.fit_to_demonstrations(learner.policy, expert_buffer, 500, rng)
     assert error() < 0.2 * before
-
-
-def twin_case(seed: int):
-    learner, config, rng = small_learner(seed)
-    first_updates.add_second_critic(learner, config)
-    batch = offpac_il.concatenated(random_triplets(rng, 4), random_triplets(rng, 4))
-    return learner, config, batch
-
-
-def targets_through(learner, target_critic, batch, config, seed):
-    replaced = dataclasses.replace(learner, target_critic=target_critic)
-    t, _ = offpac_il.critic_targets(replaced, batch, 4, config, np.random.default_rng(seed))
-    return t
-
-
-@given(st.integers(0, 2**31 - 1))
-def test_twin_targets_are_those_of_the_smaller_target_critic(seed):
-    learner, config, batch = twin_case(seed)
-    second = learner.extra_state["second_critic"].target
-    pair = first_updates.MinOfCritics(learner.target_critic, second)
-    twin = targets_through(learner, pair, batch, config, seed)
-    one, other = (
-        targets_through(learner, c, batch, config, seed) for c in (learner.target_critic, second)
-    )
-    assert np.all(twin <= one + 1e-12) and np.all(twin <= other + 1e-12)
-    assert np.any(twin < one - 1e-9) or np.any(twin < other - 1e-9)  # the min bites somewhere
-    same = first_updates.MinOfCritics(learner.target_critic, learner.target_critic)
-    np.testing.assert_allclose(targets_through(learner, same, batch, config, seed), one, rtol=1e-12)
-
-
-def test_twin_critic_step_moves_both_critics_and_their_targets():
-    learner, config, batch = twin_case(0)
-    second = learner.extra_state["second_critic"]
-    networks = (learner.critic, learner.target_critic, second.critic, second.target)
-    before = [net.copy() for net in networks]
-    half = len(batch.states) // 2
-    expert_batch, replay_batch = batch.take(np.arange(half)), batch.take(np.arange(half, 2 * half))
-    stats = first_updates.twin_critic_step(
-        learner, expert_batch, replay_batch, config, 1e-3, np.random.default_rng(1)
-    )
-    assert {"critic_loss", "q_expert", "q_replay"} <= stats.keys()
-    for old, new in zip(before, networks, strict=True):
-        assert not np.allclose(old.params["W0"], new.params["W0"])
 
 
 @pytest.mark.parametrize("start", first_updates.STARTS)
