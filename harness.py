@@ -570,6 +570,7 @@ class Clock:
 # === Stopping a run at its next checkpoint ===
 
 _stop = threading.Event()
+_interrupted = threading.Event()  # a signal stopped the run at once (read after the `with`)
 
 
 @contextlib.contextmanager
@@ -581,10 +582,12 @@ def stop_at_next_checkpoint(at_once: bool = False):
     (a command without checkpoints). A signal the process was started to ignore stays
     ignored (a shell's `cmd &` ignores SIGINT); outside the main thread nothing is installed."""
     _stop.clear()
+    _interrupted.clear()
     installed = {}
 
     def request(signum, frame):
         if _stop.is_set() or at_once:
+            _interrupted.set()
             raise KeyboardInterrupt
         _stop.set()
         print("stopping at the next checkpoint (signal again to stop at once)", file=sys.stderr)
@@ -652,16 +655,14 @@ def run_cli(body: Callable[[], object], at_once: bool = False) -> int:
     except KeyboardInterrupt as interrupt:
         print(interrupted_line(interrupt, at_once), file=sys.stderr)
         return 130
-    except ImportError as error:  # a signal's interrupt inside a module's first import
-        interrupt = error
-        while interrupt is not None and not isinstance(interrupt, KeyboardInterrupt):
-            interrupt = interrupt.__cause__ or interrupt.__context__
-        if interrupt is None:
-            raise
-        print(interrupted_line(interrupt, at_once), file=sys.stderr)
-        return 130
-    except OSError as error:
-        if error.errno not in (errno.ENOSPC, errno.EDQUOT):
+    except Exception as error:
+        if _interrupted.is_set():
+            # The stop-at-once interrupt was raised inside a C extension's call, which
+            # reports it as an error of its own: ctypes.ArgumentError from MuJoCo's first
+            # import of its GL bindings, ImportError from a module being imported.
+            print(interrupted_line(KeyboardInterrupt(), at_once), file=sys.stderr)
+            return 130
+        if not isinstance(error, OSError) or error.errno not in (errno.ENOSPC, errno.EDQUOT):
             raise
         where = f" writing {error.filename}" if error.filename else ""
         message = f"disk full{where}; the last checkpoint is kept, free space and --resume"

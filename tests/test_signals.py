@@ -105,3 +105,24 @@ def test_a_signal_stops_the_run_at_its_next_checkpoint(
     assert checkpointed(run_dir, counter) > 0
     if kind == "ars":  # checkpointed at the signal, not only by the 10 s clock
         assert checkpointed(run_dir, counter) >= int(last.split()[1])
+
+
+def test_an_interrupt_that_a_c_extension_reports_as_its_own_error_still_stops_the_run(capsys):
+    """MuJoCo's first import calls into ctypes; the second signal's KeyboardInterrupt raised
+    there comes out as ctypes.ArgumentError. The run still ends as interrupted (130)."""
+
+    def body_interrupted_inside_a_ctypes_call():
+        os.kill(os.getpid(), signal.SIGTERM)  # the first: stop at the next checkpoint
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)  # the second: stop at once
+            time.sleep(1)  # the handler runs here, in the main thread
+        except KeyboardInterrupt:
+            raise RuntimeError("argument 1: KeyboardInterrupt: ") from None
+
+    def body_with_an_error_of_its_own():
+        raise RuntimeError("a bug")
+
+    assert harness.run_cli(body_interrupted_inside_a_ctypes_call) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("interrupted")
+    with pytest.raises(RuntimeError, match="a bug"):  # no signal: an error stays an error
+        harness.run_cli(body_with_an_error_of_its_own)

@@ -20,9 +20,11 @@ def test_shipped_hopper_expert_earns_its_return():
 
 
 def test_v4_experts_earn_their_return_on_the_v5_tasks_they_serve():
+    # The median of 5 episodes: on some CPUs one Walker2d-v5 episode in ten ends short
+    # (3 362 of 4 362 on the first seed), the others within 3 % of the table's mean.
     for env_id in ("Hopper-v5", "Walker2d-v5"):
-        returns = table.evaluate(env_id, expert.load_expert(env_id).act, episodes=1, seed=0)
-        assert returns[0] > 0.9 * expert.reference_returns(env_id)[1]
+        returns = table.evaluate(env_id, expert.load_expert(env_id).act, episodes=5, seed=0)
+        assert np.median(returns) > 0.9 * expert.reference_returns(env_id)[1]
     rows = json.loads(expert.TABLE_PATH.read_text())
     assert set(table.TABLE_TASKS) <= set(rows)
     assert rows["HalfCheetah-v5"]["expert_trained_on"] == "HalfCheetah-v4"
