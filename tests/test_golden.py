@@ -1,4 +1,4 @@
-"""The default learner reproduces tests/golden/hopper-v4-default-600.csv draw for draw.
+"""The default learner reproduces tests/golden/hopper-v4-default-600.csv to a relative 1e-3.
 
 The file was written by the code before the redesign (commit 54ada0e) with the same
 command as below: the default settings on Hopper-v4, 600 interactions, evaluations
