@@ -103,9 +103,6 @@ class PeerConfig(offpac_il.RunConfig):
     """Adam learning rate of the critics and of log alpha."""
     policy_lr: float = 3e-4
     """Adam learning rate of the policy."""
-    lr_decay: bool = False
-    """Decrease every learning rate linearly to 0 over the budget, as the learner's
-    (Appendix B); off: constant, SAC's practice."""
     batch_size: int = 256
     """Transitions per update: half from the demonstrations, half from the replay buffer."""
     replay_size: int = 1_000_000
@@ -120,6 +117,12 @@ class PeerConfig(offpac_il.RunConfig):
     """Entropy temperature alpha at the start."""
     learn_alpha: bool = True
     """Learn alpha towards the target entropy -dim A (SAC's Eq. 18); off: alpha stays."""
+
+    # Settings measured not to help, which left the code (offpac_il.Config's convention):
+    # name -> (its "off" value, the last commit with it). Such a run is not resumed here.
+    removed_settings: ClassVar[dict[str, tuple[float | str, str]]] = {
+        "lr_decay": (False, "2b793f8"),
+    }
 
     @property
     def twin_critics(self) -> bool:  # SQIL is SAC: always two critics
@@ -161,8 +164,8 @@ class IQLearnConfig(PeerConfig):
     settings_before_they_existed: ClassVar[dict] = {"twin_critics": True}
 
 
-# A resumed run may extend its budget (with --lr-decay the learning rates' schedule
-# follows it, as the learner's) and change what only logging and checkpoints read.
+# A resumed run may extend its budget (no schedule depends on it) and change what only
+# logging and checkpoints read.
 RESUMABLE_CHANGES = ("total_steps", "checkpoint_every", "log_every")
 
 
@@ -434,18 +437,6 @@ def diagnostics(agent: sac.Agent, expert_buffer: offpac_il.Triplets, replay, rng
     }
 
 
-def learning_rates(config: PeerConfig, interactions: int) -> PeerConfig:
-    """The settings an update reads, with the learning rates of this point of the budget:
-    decreased linearly to 0 (nets.linear_decay, the learner's schedule) under --lr-decay."""
-    if not config.lr_decay:
-        return config
-    return dataclasses.replace(
-        config,
-        lr=nets.linear_decay(config.lr, interactions, config.total_steps),
-        policy_lr=nets.linear_decay(config.policy_lr, interactions, config.total_steps),
-    )
-
-
 def train(config: PeerConfig, method: str, resume: bool = False) -> sac.Progress:
     """Algorithm 1's loop with SAC's update on the method's batch; evaluation and
     checkpoints as the learner's."""
@@ -530,11 +521,9 @@ def train(config: PeerConfig, method: str, resume: bool = False) -> sac.Progress
             progress.episodes += 1
             progress.interactions += length
             updates = min(length, max(0, progress.interactions - config.learning_starts))
-            # The learner's schedule: the rates of the episode's start (offpac_il.train).
-            rates = learning_rates(config, progress.interactions - length)
             for _ in range(updates):
                 batch = mixed_batch(demonstrations, replay, rng, config.batch_size)
-                stats = sac.update(agent, batch, rates, rng, METHODS[method].critic_step)
+                stats = sac.update(agent, batch, config, rng, METHODS[method].critic_step)
                 progress.updates += 1
                 for name in (name for name in UPDATE_STATS if name in stats):
                     progress.stat_sums[name] = progress.stat_sums.get(name, 0.0) + stats[name]

@@ -304,35 +304,17 @@ def test_run_resumes_exactly(tmp_path, hopper_demos, monkeypatch, method):
     assert saved["method"] == method and saved["standardize"] is False
 
 
-@pytest.mark.parametrize("method", list(peers.METHODS))
-def test_lr_decay_gives_every_update_the_learners_linear_schedule(
-    tmp_path, hopper_demos, monkeypatch, method
-):
-    config = tiny_config(tmp_path / "constant", hopper_demos, method=method)
-    decayed = dataclasses.replace(config, lr_decay=True, run_dir=str(tmp_path / "decayed"))
-    seen = []
-    original = sac.update
-
-    def update(agent, batch, rates, rng, critic_step):
-        seen.append((rates.lr, rates.policy_lr))
-        return original(agent, batch, rates, rng, critic_step)
-
-    monkeypatch.setattr(sac, "update", update)
-    peers.train(config, method)
-    assert set(seen) == {(config.lr, config.policy_lr)}
-    seen.clear()
-    peers.train(decayed, method)
-    # TINY: updates start after 100 interactions of a 600 budget, one rate per episode.
-    lrs = np.array([lr for lr, _ in seen])
-    assert lrs[0] < config.lr and lrs[-1] > 0 and np.all(np.diff(lrs) <= 0) and len(set(lrs)) > 2
-    for lr, policy_lr in seen:
-        assert policy_lr == pytest.approx(lr * config.policy_lr / config.lr, rel=1e-12)
-    halfway = peers.learning_rates(decayed, decayed.total_steps // 2)
-    assert (halfway.lr, halfway.policy_lr) == (config.lr / 2, config.policy_lr / 2)
-    assert peers.learning_rates(decayed, 0) == dataclasses.replace(decayed)
-    assert peers.learning_rates(config, 300) is config
-    saved = json.loads((tmp_path / "decayed" / "config.json").read_text())
-    assert saved["lr_decay"] is True and saved["lr"] == config.lr
+def test_a_run_made_with_the_removed_lr_decay_is_not_resumed_without_it(tmp_path, hopper_demos):
+    """--lr-decay (the learner's schedule for the peers) left the code after 2b793f8: a
+    resume that dropped it would silently keep the rates constant, so it is refused."""
+    run_dir = tmp_path / "run"
+    peers.train(tiny_config(run_dir, hopper_demos), "sqil")
+    saved = json.loads((run_dir / "config.json").read_text())
+    harness.write_text(run_dir / "config.json", json.dumps({**saved, "lr_decay": True}))
+    refused = run_module("lab.peers", "sqil", "--resume", str(run_dir), check=False)
+    assert_one_line_error(refused, "--lr-decay True", "no longer has", "commit 2b793f8")
+    harness.write_text(run_dir / "config.json", json.dumps({**saved, "lr_decay": False}))
+    assert peers.main(["sqil", "--resume", str(run_dir)]) == 0  # in-process: the run's lock
 
 
 def test_command_line_help_resume_and_refusals(tmp_path, hopper_demos):
